@@ -1,0 +1,382 @@
+"""The one configuration schema: frozen dataclasses with defaults in code, loaded strictly.
+
+A scenario preset (`envs/*.toml`) is a partial `ScenarioConfig` written as TOML tables; every key it
+names must exist here, and an unknown key raises `ValueError` naming its full path.
+
+Coordinates: `x_m` runs along the highway in the direction of travel, 0 at the **merge point**,
+where the ramp centreline has joined the right lane's centreline (the end of the merge zone).
+The ramp vehicle's position is measured along its own path, which is parallel to the highway
+inside the merge zone, so all positions share one axis.
+
+    x = -highway_upstream_m             highway entrance (traffic spawns here)
+    x = -(merge_zone_m + ramp_length_m) ramp start (the ego departs here)
+    x = -merge_zone_m                   merge-zone start: the ramp taper begins
+    x = 0                               merge point: the ramp vehicle is in the right lane
+    x = success_distance_m              success: merged and this far downstream
+    x = highway_downstream_m            highway exit (traffic leaves here)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+MPH_TO_MPS = 0.44704
+
+
+@dataclass(frozen=True)
+class RoadConfig:
+    """Geometry of the ramp and the two highway lanes in the merge direction."""
+
+    lane_width_m: float = 3.75
+    """Width of each highway lane."""
+    ramp_width_m: float = 3.5
+    """Width of the single ramp lane."""
+    highway_upstream_m: float = 400.0
+    """Highway length from the entrance to the merge point."""
+    highway_downstream_m: float = 200.0
+    """Highway length from the merge point to the exit."""
+    ramp_length_m: float = 150.0
+    """Ramp length from the ramp start to the merge-zone start."""
+    merge_zone_m: float = 100.0
+    """Length of the taper in which the ramp centreline moves onto the right lane's centreline."""
+    speed_limit_mph: float = 65.0
+    """Posted speed limit (65 mph = 29.06 m/s)."""
+
+    @property
+    def speed_limit_mps(self) -> float:
+        return self.speed_limit_mph * MPH_TO_MPS
+
+    @property
+    def ramp_offset_m(self) -> float:
+        """Lateral distance from the right lane's centreline to the ramp centreline."""
+        return 0.5 * (self.lane_width_m + self.ramp_width_m)
+
+    @property
+    def x_entrance_m(self) -> float:
+        return -self.highway_upstream_m
+
+    @property
+    def x_exit_m(self) -> float:
+        return self.highway_downstream_m
+
+    @property
+    def x_ramp_start_m(self) -> float:
+        return -(self.merge_zone_m + self.ramp_length_m)
+
+    @property
+    def x_zone_start_m(self) -> float:
+        return -self.merge_zone_m
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Vehicle body and the physical limits shared by every vehicle."""
+
+    length_m: float = 5.0
+    width_m: float = 1.8
+    max_brake_mps2: float = 9.0
+    """Physical braking limit: no vehicle decelerates harder than this."""
+    max_accel_mps2: float = 3.0
+    """Physical acceleration limit of highway vehicles."""
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    """IDM car following, MOBIL lane changes, and how drivers differ (drawn per vehicle)."""
+
+    accel_mps2: float = 1.5
+    """IDM maximum acceleration a."""
+    comfort_brake_mps2: float = 2.0
+    """IDM comfortable deceleration b."""
+    min_gap_m: float = 2.0
+    """IDM jam distance s0 (bumper to bumper)."""
+    delta: float = 4.0
+    """IDM free-road exponent."""
+    desired_speed_factor: tuple[float, float] = (0.9, 1.1)
+    """Desired speed = factor x speed limit, factor uniform in this range."""
+    time_headway_s: tuple[float, float] = (1.0, 1.8)
+    """IDM desired time headway T, uniform in this range."""
+    politeness: tuple[float, float] = (0.1, 0.5)
+    """MOBIL politeness p, uniform in this range."""
+    lane_change_threshold_mps2: float = 0.2
+    """MOBIL incentive threshold."""
+    keep_right_bias_mps2: float = 0.2
+    """MOBIL keep-right bias: extra incentive needed to move left, granted to move right."""
+    safe_brake_mps2: float = 4.0
+    """MOBIL safety criterion: a lane change may not make the new follower brake harder."""
+    lane_change_cooldown_s: float = 3.0
+    """A vehicle does not change lanes again within this time."""
+    lane_change_every_steps: int = 5
+    """Lane-change decisions are taken every this many simulator steps."""
+    mix_cooperative: float = 0.3
+    """Share of cooperative drivers (yield to the ramp vehicle)."""
+    mix_neutral: float = 0.4
+    """Share of neutral drivers (ignore the ramp vehicle until it is in their lane)."""
+    mix_adversarial: float = 0.3
+    """Share of adversarial drivers (close the gap the ramp vehicle aims for)."""
+    interaction_range_m: float = 150.0
+    """Drivers react to a ramp vehicle within this distance of the merge point."""
+    yield_max_brake_mps2: float = 2.0
+    """A cooperative driver opens a gap braking at most this hard."""
+    yield_lane_change_bonus_mps2: float = 1.0
+    """Extra MOBIL incentive a yielding cooperative driver gives to moving left."""
+    adversarial_speed_factor: float = 1.15
+    """An adversarial driver closing a gap aims for this factor x the speed limit."""
+    adversarial_time_headway_s: float = 0.6
+    """... and follows its leader at this time headway (still IDM: it never rear-ends)."""
+    adversarial_accel_mps2: float = 2.5
+    """... with this IDM maximum acceleration."""
+
+    @property
+    def mix(self) -> tuple[float, float, float]:
+        """Shares of (neutral, cooperative, adversarial), in the order of the `Profile` codes."""
+        return (self.mix_neutral, self.mix_cooperative, self.mix_adversarial)
+
+
+@dataclass(frozen=True)
+class TrafficConfig:
+    """The random mainline stream entering at the upstream end of each lane."""
+
+    flow_vph_per_lane: float = 1200.0
+    """Mean arrival flow per lane (Poisson arrivals), vehicles per hour per lane."""
+    entry_speed_mps: tuple[float, float] = (24.0, 2.0)
+    """Initial speed at the entrance: (mean, std) of a normal, clipped to +-2 std."""
+    max_vehicles: int = 48
+    """Fixed vehicle slots per world, the ego's included. Arrivals beyond this are dropped."""
+    warmup_s: float = 20.0
+    """A freshly seeded road is filled with steady flow and then simulated this long."""
+
+
+@dataclass(frozen=True)
+class EgoConfig:
+    """The ramp vehicle (ego): its control, sensing and episode end conditions."""
+
+    accel_bounds_mps2: tuple[float, float] = (-4.5, 2.5)
+    """Action bounds; an action outside them is clipped."""
+    start_speed_mps: tuple[float, float] = (18.0, 24.0)
+    """Speed at the ramp start, uniform in this range."""
+    sensing_range_m: float = 150.0
+    """Gap vehicles farther than this are reported as missing."""
+    success_distance_m: float = 50.0
+    """Success: past the merge point by this distance without collision."""
+    max_episode_s: float = 60.0
+    """Truncation: out of time."""
+    stall_speed_mps: float = 0.5
+    stall_time_s: float = 10.0
+    """Truncation: slower than `stall_speed_mps` for this long."""
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights and shapes of the paper's reward terms, eqs. (3)-(7), per simulator step.
+
+    `acceleration`: -w_accel * |a|                                         (eq. 4)
+    `gap_front`:    -w_front * g(d_front, safe_front)   g(d, s) = clip(1 - d/s, 0, 1)^2   (eq. 7)
+    `gap_back`:     -w_back  * g(d_back,  safe_back)    safe = min_gap + headway * speed
+    `speed`:        -w_speed * polygon(v)   0 inside [v_low, v_limit], linear outside (eq. 6)
+    `collision`:    -collision_penalty once, on the step the ego collides (not in the paper).
+    Distance terms count only inside the merge area (from `distance_active_from_m` on).
+    """
+
+    w_accel: float = 0.05
+    w_front: float = 1.0
+    w_back: float = 0.5
+    w_speed: float = 0.3
+    safe_headway_s: float = 1.0
+    """Time headway of the safe distance in the distance terms."""
+    safe_min_gap_m: float = 2.0
+    """Standstill part of the safe distance in the distance terms."""
+    speed_low_fraction: float = 0.6
+    """Speeds below this fraction of the speed limit are punished, linearly down to 0 m/s."""
+    speed_over_scale_mps: float = 5.0
+    """Above the speed limit the speed penalty grows by 1 per this many m/s."""
+    distance_active_from_m: float = -150.0
+    """The distance terms are zero while the ego is upstream of this position (far away)."""
+    collision_penalty: float = 20.0
+    """One-off penalty on collision; 0 gives the paper's reward exactly."""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Time stepping and the multi-agent roster."""
+
+    dt_s: float = 0.1
+    action_repeat: int = 4
+    """k: one env step holds the action for this many simulator steps."""
+    n_highway_agents: int = 4
+    """Highway agents per episode: the right-lane vehicles arriving closest in time to the ego."""
+    continue_traffic: bool = True
+    """`reset()` without a seed keeps the road flowing and sends the next ramp vehicle."""
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """Everything that defines a scenario. Presets in `envs/` override parts of it."""
+
+    name: str = "default"
+    road: RoadConfig = field(default_factory=RoadConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    driver: DriverConfig = field(default_factory=DriverConfig)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    ego: EgoConfig = field(default_factory=EgoConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @property
+    def x_overlap_m(self) -> float:
+        """Where the ramp vehicle joins the right lane: its centre is one vehicle width from the
+        lane's centreline, so its body would touch a vehicle driving in that lane. From here on it
+        is a leader or follower of right-lane traffic, and collisions with it can happen."""
+        frac = min(self.vehicle.width_m / self.road.ramp_offset_m, 1.0)
+        return -self.road.merge_zone_m * frac
+
+    def replace(self, **overrides: Any) -> ScenarioConfig:
+        """A copy with dotted-path overrides: `replace(**{"traffic.flow_vph_per_lane": 800})`."""
+        data = to_dict(self)
+        for dotted, value in overrides.items():
+            node = data
+            *parents, leaf = dotted.split(".")
+            for p in parents:
+                if not isinstance(node.get(p), dict):
+                    raise ValueError(f"unknown config key {dotted!r}")
+                node = node[p]
+            if leaf not in node:
+                raise ValueError(f"unknown config key {dotted!r}")
+            node[leaf] = value
+        return from_dict(ScenarioConfig, data)
+
+
+T = TypeVar("T")
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """The config as nested plain dicts (tuples become lists), ready for TOML or JSON."""
+
+    def conv(v: Any) -> Any:
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        return v
+
+    return conv(cfg)
+
+
+def _coerce(value: Any, tp: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ValueError(f"config key {path!r} must be a table, got {value!r}")
+        return from_dict(tp, value, _prefix=path + ".")
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, list | tuple) or len(value) != len(args):
+            raise ValueError(f"config key {path!r} must be a list of {len(args)}, got {value!r}")
+        pairs = enumerate(zip(value, args, strict=True))
+        return tuple(_coerce(v, a, f"{path}[{i}]") for i, (v, a) in pairs)
+    if origin in (types.UnionType, typing.Union):
+        raise TypeError(f"unsupported config type at {path!r}")
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"config key {path!r} must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"config key {path!r} must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"config key {path!r} must be a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ValueError(f"config key {path!r} must be a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config type {tp!r} at {path!r}")
+
+
+def from_dict(cls: type[T], data: dict[str, Any], _prefix: str = "") -> T:
+    """Build `cls` from nested dicts. Unknown keys and wrongly typed values raise `ValueError`."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(
+            f"unknown config key {_prefix + unknown[0]!r} (valid keys in this table: "
+            f"{', '.join(sorted(names))})"
+        )
+    kwargs = {k: _coerce(v, hints[k], _prefix + k) for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def load_scenario(path: str | Path) -> ScenarioConfig:
+    """Load a scenario preset (TOML) strictly on top of the defaults."""
+    path = Path(path)
+    with path.open("rb") as fh:
+        data = tomllib.load(fh)
+    data.setdefault("name", path.stem)
+    try:
+        return from_dict(ScenarioConfig, data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
+
+
+def validate(cfg: ScenarioConfig) -> None:
+    """Cross-field checks that the types alone cannot express."""
+    r, e, d, s, t = cfg.road, cfg.ego, cfg.driver, cfg.sim, cfg.traffic
+    checks: list[tuple[bool, str]] = [
+        (r.merge_zone_m > 0, f"road.merge_zone_m must be > 0, got {r.merge_zone_m}"),
+        (r.ramp_length_m >= 0, f"road.ramp_length_m must be >= 0, got {r.ramp_length_m}"),
+        (
+            r.highway_upstream_m > r.merge_zone_m + r.ramp_length_m,
+            "road.highway_upstream_m must exceed merge_zone_m + ramp_length_m "
+            f"(got {r.highway_upstream_m})",
+        ),
+        (
+            0 < e.success_distance_m < r.highway_downstream_m,
+            f"ego.success_distance_m must lie in (0, road.highway_downstream_m), "
+            f"got {e.success_distance_m}",
+        ),
+        (
+            e.accel_bounds_mps2[0] < 0 < e.accel_bounds_mps2[1],
+            f"ego.accel_bounds_mps2 must be (negative, positive), got {e.accel_bounds_mps2}",
+        ),
+        (
+            max(r.highway_upstream_m, r.highway_downstream_m) < 4000.0,
+            "road.highway_upstream_m and highway_downstream_m must be < 4000 m",
+        ),
+        (s.dt_s > 0, f"sim.dt_s must be > 0, got {s.dt_s}"),
+        (s.action_repeat >= 1, f"sim.action_repeat must be >= 1, got {s.action_repeat}"),
+        (s.n_highway_agents >= 0, f"sim.n_highway_agents must be >= 0, got {s.n_highway_agents}"),
+        (t.max_vehicles >= 2, f"traffic.max_vehicles must be >= 2, got {t.max_vehicles}"),
+        (
+            t.flow_vph_per_lane >= 0,
+            f"traffic.flow_vph_per_lane must be >= 0, got {t.flow_vph_per_lane}",
+        ),
+        (
+            all(x >= 0 for x in d.mix) and math.isclose(sum(d.mix), 1.0, abs_tol=1e-6),
+            f"driver.mix_* must be >= 0 and sum to 1, got {d.mix}",
+        ),
+        (
+            d.lane_change_every_steps >= 1,
+            f"driver.lane_change_every_steps must be >= 1, got {d.lane_change_every_steps}",
+        ),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise ValueError(msg)

@@ -1,0 +1,136 @@
+"""The one definition of every observation layout: feature order, units and scaling.
+
+An observation is `raw / scale`, float32. Both the PettingZoo view and the batched torchrl view
+build observations with the functions here, so a layout change happens in one place.
+
+Missing gap vehicles (none in the right lane within the sensing range) are encoded as a virtual
+vehicle at the edge of the sensing range (`x_ego +- sensing_range_m`) driving at the speed limit.
+A missing leader or follower of a mainline vehicle is encoded as a gap equal to the sensing range
+and a speed equal to the vehicle's own speed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from marlmerge.core import EGO, RIGHT, TrafficCore
+
+SPEED_SCALE_MPS = 30.0
+POSITION_SCALE_M = 100.0
+
+
+@dataclass(frozen=True)
+class Feature:
+    name: str
+    unit: str
+    scale: float
+    doc: str
+
+
+EGO_FEATURES: tuple[Feature, ...] = (
+    Feature("ego_speed", "m/s", SPEED_SCALE_MPS, "speed of the ramp vehicle (v_ev)"),
+    Feature(
+        "ego_position",
+        "m",
+        POSITION_SCALE_M,
+        "ramp vehicle position along its path, 0 at the merge point (p_ev)",
+    ),
+    Feature("front_speed", "m/s", SPEED_SCALE_MPS, "speed of the gap-front vehicle (v_gfv)"),
+    Feature("front_position", "m", POSITION_SCALE_M, "position of the gap-front vehicle (p_gfv)"),
+    Feature("back_speed", "m/s", SPEED_SCALE_MPS, "speed of the gap-back vehicle (v_gbv)"),
+    Feature("back_position", "m", POSITION_SCALE_M, "position of the gap-back vehicle (p_gbv)"),
+    Feature("speed_limit", "m/s", SPEED_SCALE_MPS, "posted speed limit"),
+)
+"""The paper's state s = (v_ev, p_ev, v_gfv, p_gfv, v_gbv, p_gbv) plus the speed limit."""
+
+HIGHWAY_FEATURES: tuple[Feature, ...] = (
+    Feature("speed", "m/s", SPEED_SCALE_MPS, "own speed"),
+    Feature("lane", "-", 1.0, "own lane: 0 right, 1 left"),
+    Feature("leader_gap", "m", POSITION_SCALE_M, "bumper gap to the own-lane leader"),
+    Feature("leader_speed", "m/s", SPEED_SCALE_MPS, "speed of the own-lane leader"),
+    Feature("follower_gap", "m", POSITION_SCALE_M, "bumper gap to the own-lane follower"),
+    Feature("follower_speed", "m/s", SPEED_SCALE_MPS, "speed of the own-lane follower"),
+    Feature("ego_dx", "m", POSITION_SCALE_M, "ramp vehicle position minus own position"),
+    Feature("ego_speed", "m/s", SPEED_SCALE_MPS, "speed of the ramp vehicle"),
+    Feature(
+        "ego_to_merge",
+        "m",
+        POSITION_SCALE_M,
+        "distance the ramp vehicle still has to the merge point (negative once past it)",
+    ),
+    Feature("ego_in_lane", "-", 1.0, "1 once the ramp vehicle overlaps the right lane"),
+    Feature("ego_present", "-", 1.0, "1 while a ramp vehicle is on the road"),
+    Feature("speed_limit", "m/s", SPEED_SCALE_MPS, "posted speed limit"),
+)
+"""What a mainline driver needs: own motion, own-lane neighbours, the ramp vehicle."""
+
+EGO_SCALE = np.array([f.scale for f in EGO_FEATURES])
+HIGHWAY_SCALE = np.array([f.scale for f in HIGHWAY_FEATURES])
+
+
+def feature_index(features: tuple[Feature, ...], name: str) -> int:
+    return [f.name for f in features].index(name)
+
+
+def ego_features_raw(core: TrafficCore) -> np.ndarray:
+    """The ego's raw state in SI units, [B, len(EGO_FEATURES)]."""
+    st = core.state
+    g = core.ego_gaps()
+    b = core.batch_size
+    return np.stack(
+        [
+            st.v_mps[:, EGO],
+            st.x_m[:, EGO],
+            g.v_front_mps,
+            g.x_front_m,
+            g.v_back_mps,
+            g.x_back_m,
+            np.full(b, core.v_limit),
+        ],
+        axis=1,
+    )
+
+
+def ego_observation(core: TrafficCore) -> np.ndarray:
+    """Scaled ego observation, [B, 7] float32."""
+    return (ego_features_raw(core) / EGO_SCALE).astype(np.float32)
+
+
+def highway_features_raw(core: TrafficCore, slots: np.ndarray) -> np.ndarray:
+    """Raw features of the mainline vehicles in `slots` ([B, K] int), [B, K, 12]."""
+    st, nb = core.state, core.nb
+    rng_m = core.cfg.ego.sensing_range_m
+
+    def take(a: np.ndarray) -> np.ndarray:
+        return np.take_along_axis(a, slots, axis=1)
+
+    v = take(st.v_mps)
+    gap = np.minimum(take(nb.gap_m), rng_m)
+    gap_back = np.minimum(take(nb.gap_back_m), rng_m)
+    x_e = st.x_m[:, EGO : EGO + 1]
+    ego_on = st.active[:, EGO : EGO + 1]
+    k = slots.shape[1]
+    cols = [
+        v,
+        take(st.lane).astype(np.float64),
+        gap,
+        take(nb.v_lead_mps),
+        gap_back,
+        take(nb.v_follow_mps),
+        np.broadcast_to(x_e, v.shape) - take(st.x_m),
+        np.broadcast_to(st.v_mps[:, EGO : EGO + 1], v.shape),
+        np.broadcast_to(-x_e, v.shape),
+        np.broadcast_to(
+            (ego_on & (st.lane[:, EGO : EGO + 1] == RIGHT)).astype(np.float64), v.shape
+        ),
+        np.broadcast_to(ego_on.astype(np.float64), v.shape),
+        np.full((core.batch_size, k), core.v_limit),
+    ]
+    return np.stack(cols, axis=-1)
+
+
+def highway_observation(core: TrafficCore, slots: np.ndarray) -> np.ndarray:
+    """Scaled mainline observations, [B, K, 12] float32."""
+    return (highway_features_raw(core, slots) / HIGHWAY_SCALE).astype(np.float32)
