@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 import marlmerge
-from marlmerge.env import EGO_AGENT
+from marlmerge.core import OUTCOME_NAMES
+from marlmerge.env import EGO_AGENT, reward_terms
 from marlmerge.observation import SPEED_SCALE_MPS
 from marlmerge.render import save_png
 
@@ -34,8 +35,10 @@ def main() -> None:
     env = marlmerge.parallel_env(render_mode="rgb_array", control="all")
     obs, _ = env.reset(seed=args.seed)
     core, cfg = env.core, env.cfg
-    policies = {a: marlmerge.ScriptedHighwayPolicy(int(core.state.profile[0, s]), cfg)
-                for a, s in env.agent_slots.items()}
+    policies = {
+        a: marlmerge.ScriptedHighwayPolicy(int(core.state.profile[0, s]), cfg)
+        for a, s in env.agent_slots.items()
+    }
     print("highway agents:", {a: p.profile.name.lower() for a, p in policies.items()})
 
     frame, frame_x, step = None, None, 0
@@ -44,14 +47,16 @@ def main() -> None:
         actions[EGO_AGENT] = ego_action(obs[EGO_AGENT], core.v_limit)
         obs, rewards, _, _, infos = env.step(actions)
         info = infos[EGO_AGENT]
-        terms = " ".join(f"{k}={v:+.3f}" for k, v in info["reward_terms"].items() if v)
+        terms = " ".join(f"{k}={v:+.3f}" for k, v in reward_terms(info).items() if v)
         print(f"step {step:3d} x={info['ego_x_m']:7.1f} m  r={rewards[EGO_AGENT]:+.3f}  {terms}")
         # keep the frame taken closest to the middle of the merge zone
         x, mid = info["ego_x_m"], -0.5 * cfg.road.merge_zone_m
         if 2 * mid <= x <= 0.0 and (frame_x is None or abs(x - mid) < abs(frame_x - mid)):
             frame, frame_x = env.render(), x
         step += 1
-    print(f"outcome: {info['outcome']} after {info['ego_time_s']:.1f} s ({step} steps)")
+    print(
+        f"outcome: {OUTCOME_NAMES[info['outcome']]} after {info['ego_time_s']:.1f} s ({step} steps)"
+    )
 
     if frame is None:  # the ego never reached the merge zone: save the last frame instead
         frame = env.render()

@@ -28,8 +28,8 @@ def _ego_rule(rule: str, cfg, rng: np.random.Generator):
 
 def simulate(args: argparse.Namespace) -> int:
     """Drive ramp vehicles through scripted traffic, print what happened, save a frame."""
-    from marlmerge.core import EGO, OUTCOME_NONE
-    from marlmerge.env import EGO_AGENT, parallel_env
+    from marlmerge.core import EGO, OUTCOME_NAMES, OUTCOME_NONE
+    from marlmerge.env import EGO_AGENT, parallel_env, reward_terms
     from marlmerge.render import render_frame, save_png
 
     env = parallel_env(args.scenario, render_mode="rgb_array", control="ego")
@@ -60,25 +60,26 @@ def simulate(args: argparse.Namespace) -> int:
         while env.agents:
             obs, _, _, _, info = env.step({EGO_AGENT: policy(obs[EGO_AGENT])})
             steps += 1
-            totals.update(info[EGO_AGENT]["reward_terms"])
+            totals.update(reward_terms(info[EGO_AGENT]))
             x_ego = env.core.state.x_m[0, EGO]
             if frame_saved is None and x_ego >= cfg.x_overlap_m - 10.0:
                 frame_saved = out / "frame.png"
                 save_png(frame_saved, render_frame(env.core, agent_slots=env.agent_slots))
         ego = info[EGO_AGENT]
-        outcomes[ego["outcome"]] += 1
+        outcome = OUTCOME_NAMES[ego["outcome"]]
+        outcomes[outcome] += 1
         total = sum(totals.values())
         records.append(
             {
                 "episode": ep,
-                "outcome": ego["outcome"],
+                "outcome": outcome,
                 "time_s": ego["ego_time_s"],
                 "reward": total,
                 **dict(totals),
             }
         )
         print(
-            f"{ep:>3} {ego['outcome']:>10} {ego['ego_time_s']:>7.1f} {total:>8.2f}  "
+            f"{ep:>3} {outcome:>10} {ego['ego_time_s']:>7.1f} {total:>8.2f}  "
             + " ".join(
                 f"{totals[k]:>12.2f}"
                 for k in ("acceleration", "gap_front", "gap_back", "speed", "collision")

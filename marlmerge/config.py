@@ -118,7 +118,7 @@ class DriverConfig:
     """MOBIL safety criterion: a lane change may not make the new follower brake harder."""
     lane_change_cooldown_s: float = 3.0
     """A vehicle does not change lanes again within this time."""
-    lane_change_every_steps: int = 5
+    lane_change_every_steps: int = 10
     """Lane-change decisions are taken every this many simulator steps."""
     mix_cooperative: float = 0.3
     """Share of cooperative drivers (yield to the ramp vehicle)."""

@@ -2,8 +2,8 @@
 
 All vehicles of `B` independent worlds live in arrays shaped `[B, N]`: fixed slots with an
 `active` mask. A vehicle's position `x_m` is its front bumper; its body covers
-`[x_m - length_m, x_m]`. Slot 0 of every world is the ramp vehicle (the ego); slots 1..N-1 are mainline
-vehicles. One simulator step advances every world at once by `dt_s`.
+`[x_m - length_m, x_m]`. Slot 0 of every world is the ramp vehicle (the ego); slots 1..N-1 are
+mainline vehicles. One simulator step advances every world at once by `dt_s`.
 
 Neighbours are found by one sort per step (key = lane, then position), never all pairs: a vehicle's
 leader is the next entry of its lane in that order, and a position's neighbours in another lane come
@@ -53,6 +53,7 @@ class TrafficState:
     collided: np.ndarray  # [B, N] bool: involved in a collision, awaiting removal
     t_s: np.ndarray  # [B] world time
     next_arrival_s: np.ndarray  # [B, 2] world time of the next arrival per lane (RIGHT, LEFT)
+    next_entry_speed_mps: np.ndarray  # [B, 2] speed of that arrival
     next_id: np.ndarray  # [B] next vehicle id to hand out
     ego_time_s: np.ndarray  # [B] time since the current ego departed
     ego_stall_s: np.ndarray  # [B] time the current ego has been slower than the stall speed
@@ -92,6 +93,7 @@ def empty_state(batch_size: int, n_slots: int) -> TrafficState:
         collided=np.zeros((b, n), dtype=bool),
         t_s=np.zeros(b),
         next_arrival_s=np.zeros((b, 2)),
+        next_entry_speed_mps=np.zeros((b, 2)),
         next_id=np.zeros(b, dtype=np.int64),
         ego_time_s=np.zeros(b),
         ego_stall_s=np.zeros(b),
@@ -249,6 +251,7 @@ class TrafficCore:
             st.next_arrival_s[:] = rng.exponential(3600.0 / flow, size=(b, 2))
         else:
             st.next_arrival_s[:] = np.inf
+        st.next_entry_speed_mps[:] = self._draw_entry_speed((b, 2))
 
     def _draw_entry_speed(self, shape: tuple[int, ...]) -> np.ndarray:
         mean, std = self.cfg.traffic.entry_speed_mps
@@ -638,36 +641,42 @@ class TrafficCore:
         return eligible & safe & (incentive + bias > drv.lane_change_threshold_mps2)
 
     def _arrivals(self, st: TrafficState) -> None:
-        """Poisson arrivals at the entrance of each lane, delayed while the entrance is blocked."""
-        cfg = self.cfg
+        """Poisson arrivals at the entrance of each lane, delayed while the entrance is blocked.
+
+        Each lane's next arrival time and speed are drawn when the previous vehicle enters. A due
+        vehicle enters once the bumper gap to the last vehicle exceeds s0 + 0.5 s x its speed, no
+        faster than that vehicle if closer than a safe headway; with every slot taken it is dropped.
+        """
         due = st.next_arrival_s <= st.t_s[:, None]  # [B, 2]
         if not due.any():
             return
+        cfg = self.cfg
         x0 = cfg.road.x_entrance_m
-        flow = cfg.traffic.flow_vph_per_lane
+        s0 = cfg.driver.min_gap_m
         for lane_i, lane in enumerate((RIGHT, LEFT)):
             rows = np.flatnonzero(due[:, lane_i])
             if rows.size == 0:
                 continue
-            in_lane = st.active[rows] & (st.lane[rows] == lane)
-            x_lane = np.where(in_lane, st.x_m[rows], np.inf)
+            x_lane = np.where(st.active[rows] & (st.lane[rows] == lane), st.x_m[rows], np.inf)
             last = np.argmin(x_lane, axis=1)
-            x_last = x_lane[np.arange(rows.size), last]
-            v_last = st.v_mps[rows, last]
-            v = self._draw_entry_speed((rows.size,))
-            room = x_last - x0 - self.length_m  # bumper gap to the last vehicle (inf if none)
-            safe_room = cfg.driver.min_gap_m + v * cfg.driver.time_headway_s[0]
-            v = np.where(room < safe_room, np.minimum(v, v_last), v)
+            room = x_lane[np.arange(rows.size), last] - x0 - self.length_m  # inf if lane empty
+            v = st.next_entry_speed_mps[rows, lane_i]
+            clear = room > s0 + 0.5 * v
+            if not clear.any():
+                continue
+            rows, last, room, v = rows[clear], last[clear], room[clear], v[clear]
+            close = room < s0 + v * cfg.driver.time_headway_s[0]
+            v = np.where(close, np.minimum(v, st.v_mps[rows, last]), v)
             free = ~st.active[rows]
             free[:, EGO] = False
             has_slot = free.any(axis=1)
-            clear = room > cfg.driver.min_gap_m + 0.5 * v
-            go = clear & has_slot
-            st.dropped_arrivals[rows[clear & ~has_slot]] += 1
-            done = clear  # a dropped arrival is gone; a blocked one waits
             slot = np.argmax(free, axis=1)
+            st.dropped_arrivals[rows[~has_slot]] += 1
+            go = rows[has_slot]
             self._spawn_into(
-                st, rows[go], slot[go], np.full(go.sum(), x0), v[go], np.full(go.sum(), lane)
+                st, go, slot[has_slot], np.full(go.size, x0), v[has_slot], np.full(go.size, lane)
             )
-            gaps = self.rng.exponential(3600.0 / flow, size=rows.size)
-            st.next_arrival_s[rows[done], lane_i] += gaps[done]
+            st.next_arrival_s[rows, lane_i] += self.rng.exponential(
+                3600.0 / cfg.traffic.flow_vph_per_lane, size=rows.size
+            )
+            st.next_entry_speed_mps[rows, lane_i] = self._draw_entry_speed((rows.size,))

@@ -11,15 +11,24 @@ Agents
 Actions
     Box(1,) longitudinal acceleration in m/s^2, held for `sim.action_repeat` simulator steps.
     `ramp_0`: [-4.5, 2.5] by default; `highway_*`: [-max_brake, max_accel] of `VehicleConfig`.
-    Out-of-range values are clipped; NaN, infinite, wrongly shaped actions and unknown agents raise
-    `ValueError` naming the agent and the value. Controlled highway agents keep their lane.
+    Out-of-range values are clipped; NaN, infinite, wrongly shaped actions, agents that are not in
+    `possible_agents` and missing actions of live agents raise `ValueError` naming the agent and the
+    value. Actions for possible agents that are not live (done, or not in this episode's roster) are
+    ignored, as torchrl's PettingZoo wrapper sends an action for every agent of a group. Controlled
+    highway agents keep their lane.
 
 Observations
     Box float32, scaled; layouts in `marlmerge.observation` (`EGO_FEATURES`, `HIGHWAY_FEATURES`).
 
 Rewards
-    Sums over the env step of the per-simulator-step terms of `marlmerge.reward`; each agent's info
-    carries the named terms under `"reward_terms"`.
+    Sums over the env step of the per-simulator-step terms of `marlmerge.reward`.
+
+Infos
+    Flat and numeric, with the same keys at `reset` and at every step (so torchrl's PettingZoo
+    wrapper can carry them): `reward_<term>` for each named reward term (`reward_terms(info)`
+    collects them), and for `ramp_0` also `outcome` (0 running, 1 success, 2 collision,
+    3 truncated; names in `OUTCOME_NAMES`), `ego_time_s`, `ego_x_m`, `vehicle_id`; for highway
+    agents `vehicle_id` and `profile` (a `Profile` code).
 
 Episode end
     The episode is the ego's merge. `ramp_0` terminates on success or collision and is truncated
@@ -42,7 +51,6 @@ from marlmerge.config import ScenarioConfig, load_scenario
 from marlmerge.core import (
     EGO,
     OUTCOME_COLLISION,
-    OUTCOME_NAMES,
     OUTCOME_NONE,
     OUTCOME_SUCCESS,
     RIGHT,
@@ -82,6 +90,11 @@ def find_preset(name: str | Path) -> Path:
         return candidate
     known = sorted(p.stem for p in envs_dir.glob("*.toml")) if envs_dir.exists() else []
     raise ValueError(f"unknown scenario preset {str(name)!r} (known: {', '.join(known) or 'none'})")
+
+
+def reward_terms(info: dict[str, Any]) -> dict[str, float]:
+    """The named reward terms of one agent's info: {"acceleration": ..., "gap_front": ..., ...}."""
+    return {k[len("reward_") :]: float(v) for k, v in info.items() if k.startswith("reward_")}
 
 
 class RampMergeParallelEnv(ParallelEnv):
@@ -151,11 +164,26 @@ class RampMergeParallelEnv(ParallelEnv):
         self._pick_roster()
         self.agents = [EGO_AGENT] + list(self._slots)
         obs = self._observations(self.agents)
-        st = self.core.state
-        infos: dict[str, dict[str, Any]] = {EGO_AGENT: {"vehicle_id": int(st.vehicle_id[0, EGO])}}
-        for a, s in self._slots.items():
-            infos[a] = {"vehicle_id": self._ids[a], "profile": int(st.profile[0, s])}
+        infos = {EGO_AGENT: self._ego_info(dict.fromkeys(EGO_TERMS, 0.0))}
+        for a in self._slots:
+            infos[a] = self._highway_info(a, dict.fromkeys(HIGHWAY_TERMS, 0.0))
         return obs, infos
+
+    def _ego_info(self, terms: dict[str, float]) -> dict[str, float | int]:
+        st = self.core.state  # type: ignore[union-attr]
+        info: dict[str, float | int] = {f"reward_{k}": terms[k] for k in EGO_TERMS}
+        info["outcome"] = int(st.ego_outcome[0])
+        info["ego_time_s"] = float(st.ego_time_s[0])
+        info["ego_x_m"] = float(st.x_m[0, EGO])
+        info["vehicle_id"] = int(st.vehicle_id[0, EGO])
+        return info
+
+    def _highway_info(self, agent: str, terms: dict[str, float]) -> dict[str, float | int]:
+        st = self.core.state  # type: ignore[union-attr]
+        info: dict[str, float | int] = {f"reward_{k}": terms[k] for k in HIGHWAY_TERMS}
+        info["vehicle_id"] = self._ids[agent]
+        info["profile"] = int(st.profile[0, self._slots[agent]])
+        return info
 
     def _pick_roster(self) -> None:
         core = self.core
@@ -174,16 +202,17 @@ class RampMergeParallelEnv(ParallelEnv):
     def _parse_actions(self, actions: dict[str, Any]) -> dict[str, float]:
         if not isinstance(actions, dict):
             raise ValueError(f"actions must be a dict of agent -> action, got {type(actions)}")
-        unknown = [a for a in actions if a not in self.agents]
+        unknown = [a for a in actions if a not in self._action_spaces]
         if unknown:
             raise ValueError(
-                f"unknown agent {unknown[0]!r} in actions (live agents: {self.agents})"
+                f"unknown agent {unknown[0]!r} in actions (possible agents: {self.possible_agents})"
             )
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ValueError(f"no action for live agent {missing[0]!r}")
         out = {}
-        for agent, act in actions.items():
+        for agent in self.agents:
+            act = actions[agent]
             arr = np.asarray(act, dtype=np.float64)
             if arr.shape not in ((1,), ()):
                 raise ValueError(
@@ -268,21 +297,9 @@ class RampMergeParallelEnv(ParallelEnv):
                 terminations[a] = True
             elif ego_done:
                 truncations[a] = True
-        infos: dict[str, dict[str, Any]] = {
-            EGO_AGENT: {
-                "reward_terms": ego_terms,
-                "outcome": OUTCOME_NAMES[int(st.ego_outcome[0])],
-                "ego_time_s": float(st.ego_time_s[0]),
-                "ego_x_m": float(st.x_m[0, EGO]),
-            }
-        }
+        infos = {EGO_AGENT: self._ego_info(ego_terms)}
         for a in hw_agents:
-            s = self._slots[a]
-            infos[a] = {
-                "reward_terms": hw_terms[a],
-                "vehicle_id": self._ids[a],
-                "profile": int(st.profile[0, s]),
-            }
+            infos[a] = self._highway_info(a, hw_terms[a])
         self.agents = [a for a in agents if not (terminations[a] or truncations[a])]
         return obs, rewards, terminations, truncations, infos
 

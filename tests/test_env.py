@@ -5,7 +5,8 @@ import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 import marlmerge
-from marlmerge.env import EGO_AGENT
+from marlmerge.core import OUTCOME_NAMES
+from marlmerge.env import EGO_AGENT, reward_terms
 from marlmerge.observation import EGO_FEATURES, HIGHWAY_FEATURES
 from marlmerge.reward import EGO_TERMS, HIGHWAY_TERMS
 
@@ -93,6 +94,8 @@ def test_unknown_and_missing_agents_raise():
     del acts["highway_0"]
     with pytest.raises(ValueError, match="'highway_0'"):
         env.step(acts)
+    with pytest.raises(ValueError, match="'ramp_1'"):
+        env.step({**acts, "highway_0": np.zeros(1), "ramp_1": np.zeros(1)})
     with pytest.raises(ValueError, match="'nobody'"):
         env.action_space("nobody")
 
@@ -113,16 +116,20 @@ def test_reward_terms_are_reported_and_sum_to_the_reward():
     seen = set()
     for _ in range(200):
         obs, rew, term, trunc, info = env.step({a: np.array([-0.5]) for a in env.agents})
-        terms = info[EGO_AGENT]["reward_terms"]
+        terms = reward_terms(info[EGO_AGENT])
         assert tuple(terms) == EGO_TERMS
         assert sum(terms.values()) == pytest.approx(rew[EGO_AGENT])
         assert all(v <= 0.0 for v in terms.values())
         for a in rew:
             if a != EGO_AGENT:
-                assert tuple(info[a]["reward_terms"]) == HIGHWAY_TERMS
+                assert tuple(reward_terms(info[a])) == HIGHWAY_TERMS
         seen |= {k for k, v in terms.items() if v < 0}
         if not env.agents:
-            assert info[EGO_AGENT]["outcome"] in ("success", "collision", "truncated")
+            assert OUTCOME_NAMES[info[EGO_AGENT]["outcome"]] in (
+                "success",
+                "collision",
+                "truncated",
+            )
             env.reset()
     assert {"acceleration", "gap_front", "speed"} <= seen
 
@@ -159,3 +166,5 @@ def test_highway_agent_that_leaves_the_road_terminates():
             break
     assert gone is not None, "a highway agent flooring it should reach the exit within 60 s"
     assert gone not in env.agents and EGO_AGENT in env.agents
+    # an action for an agent that is done is ignored, even a malformed one
+    env.step({**{a: np.zeros(1) for a in env.agents}, gone: np.array([np.nan])})
