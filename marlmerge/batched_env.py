@@ -12,6 +12,7 @@ Keys (all with leading dim B):
     "reward"      [B, 1]   sum of the named terms over the env step
     "reward_terms", <term> [B, 1] each named term (`marlmerge.reward.EGO_TERMS`)
     "outcome"     [B, 1]   int64 OUTCOME_* code of the ego (0 while running)
+    "ego_time_s"  [B, 1]   time since the ego departed (frozen once its episode ended)
     "done" / "terminated" / "truncated" [B, 1]: terminated on success or collision, truncated when
                            stalled or out of time.
 """
@@ -68,6 +69,7 @@ class BatchedMergeEnv(EnvBase):
                 device=device,
             ),
             outcome=Unbounded((b, 1), dtype=torch.int64, device=device),
+            ego_time_s=Unbounded((b, 1), dtype=torch.float32, device=device),
             shape=(b,),
             device=device,
         )
@@ -86,10 +88,18 @@ class BatchedMergeEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.core.reset(seed=seed)
 
+    def resume_without_reset(self) -> None:
+        """The next full reset keeps every world as it is (its ego mid-episode included), so a
+        collector built on a restored core continues where the saved run stopped."""
+        self._keep_on_reset = True
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         mask = np.ones(self.num_worlds, dtype=bool)
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.num_worlds).cpu().numpy()
+        elif getattr(self, "_keep_on_reset", False):
+            mask = np.zeros(self.num_worlds, dtype=bool)
+            self._keep_on_reset = False
         self.core.next_ego(mask)
         zeros = np.zeros(self.num_worlds)
         out = self._output({t: zeros for t in EGO_TERMS}, np.zeros(self.num_worlds, np.int64))
@@ -159,6 +169,7 @@ class BatchedMergeEnv(EnvBase):
                 "reward": col(reward),
                 "reward_terms": TensorDict({t: col(terms[t]) for t in EGO_TERMS}, batch_size=[b]),
                 "outcome": col(outcome, torch.int64),
+                "ego_time_s": col(self.core.state.ego_time_s),
                 "done": col(terminated | truncated, torch.bool),
                 "terminated": col(terminated, torch.bool),
                 "truncated": col(truncated, torch.bool),

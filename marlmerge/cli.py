@@ -1,4 +1,4 @@
-"""Command line: `marlmerge simulate ...`. Run `marlmerge --help` for the commands."""
+"""Command line: `marlmerge train | evaluate | plot | simulate`. `marlmerge --help` lists them."""
 
 from __future__ import annotations
 
@@ -108,9 +108,139 @@ def simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_sets(items: list[str]) -> dict:
+    """`--set key=value` pairs, values in TOML syntax (numbers, true/false, "strings")."""
+    from marlmerge.config import tomllib
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = value.strip()
+    return out
+
+
+def train_cmd(args: argparse.Namespace) -> int:
+    """Train the ego with the quadratic-Q learner; evaluate and plot at the end."""
+    from marlmerge.train import TrainConfig, load_train_config, train
+
+    sets = _parse_sets(args.set)
+    if args.preset:
+        cfg = load_train_config(args.preset, **sets)
+    else:
+        from marlmerge.config import from_dict, to_dict
+
+        cfg = from_dict(TrainConfig, {**to_dict(TrainConfig()), **sets})
+    out = Path(args.out or f"runs/{cfg.name}")
+    if (out / "checkpoint.pt").exists() and not args.resume:
+        raise ValueError(
+            f"{out} already holds a run: pass --resume to continue it, or --out to "
+            "start a new one elsewhere"
+        )
+    print(
+        f"training {cfg.name!r} on scenario {cfg.scenario!r}: {cfg.total_sim_steps:,} simulator "
+        f"steps in {cfg.num_worlds} worlds, seed {cfg.seed}, writing {out}",
+        flush=True,
+    )
+    result = train(cfg, out, resume=args.resume, progress=not args.no_progress)
+    print(
+        f"done: {result.sim_steps:,} simulator steps, {result.updates:,} updates, "
+        f"{result.egos:,} ramp vehicles in {result.wall_s:.0f} s "
+        f"(updates {result.update_s:.0f} s, env {result.collect_s:.0f} s)"
+    )
+    if result.evaluation is not None:
+        _print_evaluation(result.evaluation)
+    print(f"logs, checkpoint, policy and figures in {out}")
+    return 0
+
+
+def _print_evaluation(ev: dict) -> None:
+    print(
+        f"greedy evaluation on {ev['episodes']} held-out episodes: "
+        f"success {ev['success_rate']:.1%}, collision {ev['collision_rate']:.1%}, "
+        f"truncation {ev['truncation_rate']:.1%}, mean merge time {ev['mean_merge_time_s']:.1f} s,"
+        f" mean |acceleration| {ev['mean_abs_accel_mps2']:.2f} m/s^2"
+    )
+
+
+def evaluate_cmd(args: argparse.Namespace) -> int:
+    """Evaluate a saved policy greedily on held-out episodes."""
+    import torch
+
+    from marlmerge.config import ScenarioConfig, from_dict
+    from marlmerge.env import resolve_config
+    from marlmerge.evaluate import evaluate_greedy
+    from marlmerge.learners.quadq import QuadraticQNet
+
+    path = Path(args.policy)
+    if path.is_dir():
+        path = path / "policy.pt"
+    if not path.exists():
+        raise ValueError(f"no saved policy at {path}")
+    saved = torch.load(path, weights_only=False)
+    scen = (
+        resolve_config(args.scenario)
+        if args.scenario
+        else from_dict(ScenarioConfig, saved["scenario"])
+    )
+    lo, hi = scen.ego.accel_bounds_mps2
+    net = QuadraticQNet(7, saved["config"]["hidden"], action_low=lo, action_high=hi)
+    net.load_state_dict(saved["net"])
+    ev = evaluate_greedy(net, scen, args.episodes, args.seed, args.worlds)
+    _print_evaluation(ev)
+    print(json.dumps(ev))
+    return 0
+
+
+def plot_cmd(args: argparse.Namespace) -> int:
+    """Regenerate the paper's figures from a run's logs."""
+    from marlmerge.plots import plot_run
+
+    for p in plot_run(args.run):
+        print(f"wrote {p}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="marlmerge", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="train the ego (default: the paper's recipe)")
+    t.add_argument(
+        "preset",
+        nargs="?",
+        default=None,
+        help="training preset in trainers/ or a .toml path (default: the built-in "
+        "defaults, which are the paper's recipe)",
+    )
+    t.add_argument("--out", default=None, help="run folder (default runs/<name>)")
+    t.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    t.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a TrainConfig field, e.g. --set seed=1 (repeatable)",
+    )
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.set_defaults(func=train_cmd)
+
+    e = sub.add_parser("evaluate", help="evaluate a saved policy greedily")
+    e.add_argument("policy", help="a run folder or a policy.pt file")
+    e.add_argument("--episodes", type=int, default=200)
+    e.add_argument("--seed", type=int, default=1_000_000, help="first held-out road seed")
+    e.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
+    e.add_argument("--scenario", default=None, help="evaluate on another scenario preset")
+    e.set_defaults(func=evaluate_cmd)
+
+    pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
+    pl.add_argument("run", help="run folder")
+    pl.set_defaults(func=plot_cmd)
+
     s = sub.add_parser("simulate", help="drive ramp vehicles through scripted traffic")
     s.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
     s.add_argument("--episodes", type=int, default=20)

@@ -109,8 +109,9 @@ class _View:
         return (self.y_top - y) * self.ppm
 
 
-def _fill_columns(img: np.ndarray, top: np.ndarray, bot: np.ndarray, colour: Colour,
-                  c0: int = 0) -> None:
+def _fill_columns(
+    img: np.ndarray, top: np.ndarray, bot: np.ndarray, colour: Colour, c0: int = 0
+) -> None:
     """Fill, in columns c0..c0+len(top)-1, the pixels whose centre row lies in [top, bot).
 
     top, bot: float pixel rows per column (NaN = nothing in that column).
@@ -133,11 +134,18 @@ def _fill_columns(img: np.ndarray, top: np.ndarray, bot: np.ndarray, colour: Col
     centres = np.arange(r0, r1, dtype=np.float64)[:, None] + 0.5
     with np.errstate(invalid="ignore"):
         mask = (centres >= top[None, :]) & (centres < bot[None, :])
-    img[r0:r1, c0 + i0:c0 + i1][mask] = colour
+    img[r0:r1, c0 + i0 : c0 + i1][mask] = colour
 
 
-def _rect(img: np.ndarray, c_lo: float, c_hi: float, r_lo: float, r_hi: float,
-          colour: Colour, grow_px: int = 0) -> None:
+def _rect(
+    img: np.ndarray,
+    c_lo: float,
+    c_hi: float,
+    r_lo: float,
+    r_hi: float,
+    colour: Colour,
+    grow_px: int = 0,
+) -> None:
     """Filled axis-aligned rectangle in float pixel coordinates, grown by `grow_px` whole pixels."""
     h, w = img.shape[:2]
     a = max(int(math.ceil(c_lo - 0.5)) - grow_px, 0)
@@ -149,8 +157,9 @@ def _rect(img: np.ndarray, c_lo: float, c_hi: float, r_lo: float, r_hi: float,
 
 
 @lru_cache(maxsize=8)
-def _background(road: RoadConfig, success_m: float, x_range_m: tuple[float, float],
-                px_per_m: float) -> np.ndarray:
+def _background(
+    road: RoadConfig, success_m: float, x_range_m: tuple[float, float], px_per_m: float
+) -> np.ndarray:
     """The static road layer, [H, W, 3] uint8, read-only (cached)."""
     v = _View(road, x_range_m, px_per_m)
     lw, rw, zone = road.lane_width_m, road.ramp_width_m, road.merge_zone_m
@@ -160,8 +169,9 @@ def _background(road: RoadConfig, success_m: float, x_range_m: tuple[float, floa
     nan = np.full(v.width, np.nan)
     t_px = max(1.0, round(0.2 * v.ppm))  # line thickness in pixels
 
-    def band(y_lo: np.ndarray | float, y_hi: np.ndarray | float, where: np.ndarray,
-             colour: Colour) -> None:
+    def band(
+        y_lo: np.ndarray | float, y_hi: np.ndarray | float, where: np.ndarray, colour: Colour
+    ) -> None:
         """Fill y in [y_lo, y_hi] over the columns where `where`."""
         top = np.where(where, v.row(np.broadcast_to(y_hi, xs.shape)), nan)
         bot = np.where(where, v.row(np.broadcast_to(y_lo, xs.shape)), nan)
@@ -173,8 +183,7 @@ def _background(road: RoadConfig, success_m: float, x_range_m: tuple[float, floa
 
     def cross(x: float, y_lo: float, y_hi: float, colour: Colour, thick: float = 1.0) -> None:
         c = v.col(x)
-        _rect(img, c - 0.5 * thick * t_px, c + 0.5 * thick * t_px, v.row(y_hi), v.row(y_lo),
-              colour)
+        _rect(img, c - 0.5 * thick * t_px, c + 0.5 * thick * t_px, v.row(y_hi), v.row(y_lo), colour)
 
     on_highway = (xs >= road.x_entrance_m) & (xs <= road.x_exit_m)
     on_ramp = (xs >= road.x_ramp_start_m - RAMP_STUB_M) & (xs <= 0.0)
@@ -273,13 +282,14 @@ def render_frame(
         # on its drawn path, at the lateral position of the body's midpoint
         rc = float(v.row(ego_lateral_m(road, x[EGO] - 0.5 * length)))
         a, b = float(c_lo[EGO]), float(c_hi[EGO])
-        fill, outline = ((COLLIDED_COLOUR, COLLIDED_OUTLINE) if st.collided[world, EGO]
-                         else (EGO_COLOUR, EGO_OUTLINE))
+        fill, outline = (
+            (COLLIDED_COLOUR, COLLIDED_OUTLINE)
+            if st.collided[world, EGO]
+            else (EGO_COLOUR, EGO_OUTLINE)
+        )
         _rect(img, a, b, rc - hw_px, rc + hw_px, outline, grow_px=1)
         _rect(img, a, b, rc - hw_px, rc + hw_px, fill)
     return img
-
-
 
 
 def save_png(path: str | Path, image: np.ndarray) -> None:
@@ -297,6 +307,10 @@ def save_png(path: str | Path, image: np.ndarray) -> None:
         return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
 
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8-bit truecolour, no interlace
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
-           + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6)) + chunk(b"IEND", b""))
+    png = (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6))
+        + chunk(b"IEND", b"")
+    )
     Path(path).write_bytes(png)

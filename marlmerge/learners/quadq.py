@@ -1,0 +1,793 @@
+"""Quadratic-in-action Q-learning (Wang & Chan, ramp merge with a continuous action space).
+
+The Q-function is quadratic in the 1-D action (the longitudinal acceleration, m/s^2):
+
+    Q(s, a) = A(s) * (B(s) - a)^2 + C(s),   A(s) < 0,
+
+so the greedy action is ``a* = B(s)`` and ``max_a Q(s, a) = C(s)``. A, B and C are three
+independent two-layer MLPs of the state; :class:`QuadraticQNet` stores them fused (one
+``Linear(obs_dim, 3 * hidden)`` plus a block-diagonal second layer), which is the same function
+as three separate MLPs with a third of the kernel launches.
+
+Contents:
+
+* :class:`QuadraticQNet` - the network; ``forward(obs) -> (A, B, C)``, ``q``, ``greedy``,
+  ``max_value``.
+* :class:`QuadraticQLoss` - a torchrl :class:`~torchrl.objectives.LossModule`, the public and
+  tested definition of the TD(0) loss of the paper (eq. 10), with target parameters it owns.
+* :class:`PeriodicHardUpdate` - torchrl's ``HardUpdate`` with "copy every ``period`` updates".
+* :class:`GaussianExploration` - greedy action + linearly decaying Gaussian noise, clipped.
+* :class:`TransitionReplay` and :class:`FastQuadQUpdater` - the engineered training path:
+  packed tensor replay, many minibatches per sampling call, hand-written gradients, a flat
+  Adam and optional ``torch.compile``. It computes the same loss as :class:`QuadraticQLoss`
+  (tested) and updates the loss module's parameters in place.
+
+All randomness comes from caller-supplied ``torch.Generator`` objects.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import dispatch
+from tensordict.utils import NestedKey, unravel_key
+from torch import Tensor, nn
+from torchrl.objectives import HardUpdate, LossModule
+
+__all__ = [
+    "DEFAULT_ACTION_BOUNDS",
+    "FastQuadQUpdater",
+    "GaussianExploration",
+    "PeriodicHardUpdate",
+    "QuadraticQLoss",
+    "QuadraticQNet",
+    "TransitionReplay",
+    "noisy_greedy_action",
+]
+
+DEFAULT_ACTION_BOUNDS: tuple[float, float] = (-4.5, 2.5)
+"""Ego acceleration bounds, m/s^2 (``EgoConfig.accel_bounds_mps2``)."""
+
+HEAD_A, HEAD_B, HEAD_C = 0, 1, 2
+"""Row of each head in the fused second layer."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Network
+# ----------------------------------------------------------------------------------------------
+
+
+class QuadraticQNet(nn.Module):
+    """Q(s, a) = A(s) (B(s) - a)^2 + C(s) with three two-layer MLPs fused into one.
+
+    Layer 1 is ``hidden: Linear(obs_dim, 3 * hidden)`` (rows ``[k*H:(k+1)*H]`` belong to head
+    k = A, B, C), ReLU, then a block-diagonal layer 2: head k reads only its own H hidden
+    units, ``z_k = <h_k, head_weight[k]> + head_bias[k]``. Initialisation matches three
+    ``nn.Linear`` stacks (uniform(+-1/sqrt(fan_in))), except the A bias (see ``a_init``).
+
+    Output activations:
+
+    * ``A = -(a_min + (a_max - a_min) * sigmoid(z_A))`` lies in ``[-a_max, -a_min]``: strictly
+      negative (the argmax is unique) and bounded below, which guards against the known failure
+      of this family where the curvature runs away (|A| -> inf, then inf * 0 = NaN in the
+      target). A saturated sigmoid has no gradient pushing further, and at the small end
+      ``sigmoid(z) ~ exp(z)`` so |A| can still shrink multiplicatively. A softplus clamped at
+      ``a_max`` would do the same but has a kink and a dead gradient above the clamp.
+    * ``B = low + (high - low) * sigmoid(z_B)`` lies strictly inside ``(low, high)`` (a scaled
+      tanh, written with sigmoid), so the greedy action is always feasible and
+      ``max_{a in [low, high]} Q(s, a) = Q(s, B(s)) = C(s)``.
+    * ``C = z_C`` is unconstrained.
+
+    Args:
+        obs_dim: observation size (7 for the paper's state).
+        hidden: hidden width of each of the three MLPs.
+        action_low, action_high: action bounds, m/s^2.
+        a_min, a_max: bounds on the curvature magnitude |A|.
+        a_init: |A| at initialisation (sets the A bias); ``None`` keeps the nn.Linear init.
+        generator: seeds the initialisation; ``None`` uses a fresh ``torch.Generator``
+            seeded with 0 (never the global RNG).
+    """
+
+    def __init__(
+        self,
+        obs_dim: int = 7,
+        hidden: int = 64,
+        *,
+        action_low: float = DEFAULT_ACTION_BOUNDS[0],
+        action_high: float = DEFAULT_ACTION_BOUNDS[1],
+        a_min: float = 1e-3,
+        a_max: float = 5.0,
+        a_init: float | None = 0.1,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        if not action_low < action_high:
+            raise ValueError(f"need action_low < action_high, got {action_low}, {action_high}")
+        if not 0.0 < a_min < a_max:
+            raise ValueError(f"need 0 < a_min < a_max, got {a_min}, {a_max}")
+        self.obs_dim = obs_dim
+        self.hidden_dim = hidden
+        self.action_low = float(action_low)
+        self.action_high = float(action_high)
+        self.a_min = float(a_min)
+        self.a_max = float(a_max)
+        self.hidden = nn.Linear(obs_dim, 3 * hidden)
+        self.head_weight = nn.Parameter(torch.empty(3, hidden))  # [3, H]
+        self.head_bias = nn.Parameter(torch.empty(3))  # [3]
+        gen = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.reset_parameters(gen, a_init=a_init)
+
+    @torch.no_grad()
+    def reset_parameters(self, generator: torch.Generator, *, a_init: float | None = 0.1) -> None:
+        """nn.Linear-style uniform init from ``generator``; optionally set the initial |A|."""
+        b1 = 1.0 / math.sqrt(self.obs_dim)
+        b2 = 1.0 / math.sqrt(self.hidden_dim)
+        for p, bound in (
+            (self.hidden.weight, b1),
+            (self.hidden.bias, b1),
+            (self.head_weight, b2),
+            (self.head_bias, b2),
+        ):
+            p.copy_(torch.rand(p.shape, generator=generator) * (2 * bound) - bound)
+        if a_init is not None:
+            if not self.a_min < a_init < self.a_max:
+                raise ValueError(f"a_init must lie in (a_min, a_max), got {a_init}")
+            frac = (a_init - self.a_min) / (self.a_max - self.a_min)
+            self.head_bias[HEAD_A] = math.log(frac / (1.0 - frac))
+
+    @property
+    def action_span(self) -> float:
+        return self.action_high - self.action_low
+
+    def heads(self, obs: Tensor) -> Tensor:
+        """Pre-activation head outputs ``z = [z_A, z_B, z_C]``: [..., obs_dim] -> [..., 3]."""
+        h = torch.relu(self.hidden(obs))  # [..., 3H]
+        h = h.unflatten(-1, (3, self.hidden_dim))  # [..., 3, H]
+        return (h * self.head_weight).sum(-1) + self.head_bias  # [..., 3]
+
+    def forward(self, obs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``obs [..., obs_dim] -> (A, B, C)``, each [..., 1]; A < 0, B in (low, high)."""
+        z = self.heads(obs)
+        za, zb, zc = z.split(1, dim=-1)
+        a = -(self.a_min + (self.a_max - self.a_min) * torch.sigmoid(za))  # [..., 1]
+        b = self.action_low + self.action_span * torch.sigmoid(zb)  # [..., 1], m/s^2
+        return a, b, zc
+
+    def q(self, obs: Tensor, action: Tensor) -> Tensor:
+        """Q(s, a): obs [..., obs_dim], action [..., 1] (m/s^2) -> [..., 1]."""
+        a, b, c = self(obs)
+        return a * (b - action).pow(2) + c
+
+    def greedy(self, obs: Tensor) -> Tensor:
+        """argmax_a Q(s, a) = B(s): [..., obs_dim] -> [..., 1], m/s^2, inside the bounds."""
+        return self(obs)[1]
+
+    def max_value(self, obs: Tensor) -> Tensor:
+        """max over the bounded action set of Q(s, a) = Q(s, B(s)) = C(s): [..., 1]."""
+        return self.heads(obs)[..., HEAD_C:]
+
+
+def _get(td: TensorDictBase, key: NestedKey) -> Tensor:
+    """``td.get`` that raises (tensordict 0.14 ``get`` returns None for a missing key)."""
+    value = td.get(key, None)
+    if value is None:
+        raise KeyError(f"key {key!r} not found in the input tensordict (see loss.set_keys)")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# Loss
+# ----------------------------------------------------------------------------------------------
+
+
+class QuadraticQLoss(LossModule):
+    """TD(0) loss of the quadratic Q-function with a hard-updated target network (eq. 10).
+
+    ``loss = mean_batch (r + gamma * (1 - terminated) * max_a' Q_target(s', a') - Q(s, a))^2``
+
+    with ``max_a' Q_target(s', a') = C_target(s')`` because B is squashed inside the action
+    bounds. Only ``terminated`` masks the bootstrap; a truncated transition still bootstraps.
+
+    The online parameters live in ``value_network_params`` (the same ``nn.Parameter`` objects
+    as the network passed in, so ``net.greedy(obs)`` always acts with the current weights), the
+    target parameters in ``target_value_network_params`` (detached clones, never trained). Pair
+    the loss with :class:`PeriodicHardUpdate` (or torchrl ``HardUpdate``) and call its
+    ``step()`` after every optimiser step, or use :class:`FastQuadQUpdater`, which does both.
+
+    Args:
+        value_network: a module whose ``forward(obs)`` returns ``(A, B, C)`` each [..., 1],
+            with B inside the action bounds (e.g. :class:`QuadraticQNet`).
+
+    Keyword Args:
+        gamma: discount factor (0.95 in the paper). A buffer; ``loss.gamma = x`` updates it.
+        reduction: ``"mean"`` (default, the paper), ``"sum"`` or ``"none"``.
+
+    Tensordict keys (change with :meth:`set_keys`), torchrl conventions: ``reward`` and
+    ``terminated`` are read under ``"next"``; the next observation is
+    ``("next", observation)``.
+
+    * ``observation`` [B, obs_dim], ``action`` [B, 1] (m/s^2), ``("next", "reward")`` [B, 1],
+      ``("next", "terminated")`` [B, 1] bool, ``("next", "observation")`` [B, obs_dim].
+    * Writes ``|TD error|`` [B, 1] (detached) into the input under ``priority`` ("td_error").
+
+    Returns a TensorDict with ``loss_value`` and detached batch means ``td_error`` (|delta|),
+    ``pred_value``, ``target_value``, ``A_mean``, ``B_mean``, ``C_mean``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys (``loss.set_keys(name=key)``).
+
+        Attributes:
+            observation: state; ``("next", observation)`` is the next state.
+            action: applied acceleration, [..., 1].
+            reward: read at ``("next", reward)``.
+            terminated: read at ``("next", terminated)``; True stops the bootstrap.
+            priority: where |TD error| is written in the input tensordict.
+            priority_weight: optional importance weights (prioritized replay).
+        """
+
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        reward: NestedKey = "reward"
+        terminated: NestedKey = "terminated"
+        priority: NestedKey = "td_error"
+        priority_weight: NestedKey = "priority_weight"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    default_value_estimator = None
+    _schedulable_buffers = frozenset({"gamma"})
+    out_keys = [
+        "loss_value",
+        "td_error",
+        "pred_value",
+        "target_value",
+        "A_mean",
+        "B_mean",
+        "C_mean",
+    ]
+
+    value_network: nn.Module
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
+    gamma: Tensor
+
+    def __init__(
+        self,
+        value_network: nn.Module,
+        *,
+        gamma: float = 0.95,
+        reduction: str = "mean",
+        use_prioritized_weights: str | bool = "auto",
+    ) -> None:
+        super().__init__()
+        self._in_keys = None
+        self.reduction = reduction
+        self.use_prioritized_weights = use_prioritized_weights
+        self.convert_to_functional(value_network, "value_network", create_target_params=True)
+        self.register_coeff_buffer("gamma", float(gamma))
+
+    # --- keys -----------------------------------------------------------------------------
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        # No torchrl value estimator: the TD(0) target is computed in forward().
+        self._set_in_keys()
+
+    def _set_in_keys(self) -> None:
+        k = self.tensor_keys
+        self._in_keys = [
+            unravel_key(k.observation),
+            unravel_key(k.action),
+            unravel_key(("next", k.reward)),
+            unravel_key(("next", k.terminated)),
+            unravel_key(("next", k.observation)),
+        ]
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        if self._in_keys is None:
+            self._set_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values: list[NestedKey]) -> None:
+        self._in_keys = values
+
+    # --- loss -----------------------------------------------------------------------------
+
+    def td_target(self, tensordict: TensorDictBase) -> Tensor:
+        """``r + gamma * (1 - terminated) * C_target(s')`` [B, 1], without gradient."""
+        k = self.tensor_keys
+        reward = _get(tensordict, ("next", k.reward))
+        terminated = _get(tensordict, ("next", k.terminated))
+        next_obs = _get(tensordict, ("next", k.observation))
+        with torch.no_grad():
+            with self.target_value_network_params.to_module(
+                self.value_network, preserve_module_state=False
+            ):
+                next_value = self.value_network(next_obs)[2]  # [B, 1]
+            not_term = (~terminated.bool()).to(next_value.dtype).reshape(next_value.shape)
+            return reward.reshape(next_value.shape) + self.gamma * not_term * next_value
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        """Loss on a batch of transitions; see the class docstring for keys and outputs."""
+        k = self.tensor_keys
+        obs = _get(tensordict, k.observation)
+        action = _get(tensordict, k.action)
+        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
+            a, b, c = self.value_network(obs)  # [B, 1] each
+        action = action.reshape(b.shape).to(b.dtype)
+        pred = a * (b - action).pow(2) + c  # [B, 1]
+        target = self.td_target(tensordict)  # [B, 1]
+        delta = pred - target
+        weights = self._maybe_get_priority_weight(tensordict)
+        loss = self._reduce_loss(delta.pow(2).squeeze(-1), tensordict=tensordict, weights=weights)
+        abs_delta = delta.detach().abs()
+        tensordict.set(k.priority, abs_delta, inplace=True)
+        with torch.no_grad():
+            out = TensorDict(
+                {
+                    "td_error": abs_delta.mean(),
+                    "pred_value": pred.mean(),
+                    "target_value": target.mean(),
+                    "A_mean": a.mean(),
+                    "B_mean": b.mean(),
+                    "C_mean": c.mean(),
+                },
+                batch_size=[],
+            )
+        out.set("loss_value", loss)
+        self._clear_weakrefs(tensordict, out, "value_network_params", "target_value_network_params")
+        return out
+
+
+class PeriodicHardUpdate(HardUpdate):
+    """torchrl ``HardUpdate`` that copies online -> target after exactly every ``period`` calls.
+
+    torchrl 0.14.1 ``HardUpdate(loss, value_network_update_interval=n)`` copies on the
+    (n+1)-th, 2(n+1)-th ... call to ``step()`` (its counter runs 0..n inclusive), so the
+    paper's "every p updates" is ``value_network_update_interval = p - 1``.
+    """
+
+    def __init__(self, loss_module: LossModule, *, period: int = 500) -> None:
+        if period < 1:
+            raise ValueError(f"period must be >= 1, got {period}")
+        super().__init__(loss_module, value_network_update_interval=period - 1)
+        self.period = period
+
+
+# ----------------------------------------------------------------------------------------------
+# Exploration
+# ----------------------------------------------------------------------------------------------
+
+
+def noisy_greedy_action(
+    greedy_action: Tensor,
+    sigma: float,
+    generator: torch.Generator,
+    *,
+    low: float = DEFAULT_ACTION_BOUNDS[0],
+    high: float = DEFAULT_ACTION_BOUNDS[1],
+) -> Tensor:
+    """``clip(greedy + sigma * N(0, 1), low, high)``, noise drawn from ``generator``.
+
+    ``greedy_action`` [..., 1] m/s^2; the generator must live on the action's device.
+    """
+    noise = torch.randn(
+        greedy_action.shape,
+        generator=generator,
+        device=greedy_action.device,
+        dtype=greedy_action.dtype,
+    )
+    return (greedy_action + sigma * noise).clamp(low, high)
+
+
+@dataclass
+class GaussianExploration:
+    """Greedy action plus Gaussian noise whose std decays linearly, clipped to the bounds.
+
+    ``sigma(step) = sigma_start + (sigma_end - sigma_start) * min(step / decay_steps, 1)``,
+    m/s^2. Stateless: pass the global step; deterministic given the generator state.
+    """
+
+    sigma_start: float = 1.0
+    sigma_end: float = 0.1
+    decay_steps: int = 1_000_000
+    low: float = DEFAULT_ACTION_BOUNDS[0]
+    high: float = DEFAULT_ACTION_BOUNDS[1]
+
+    def sigma(self, step: int) -> float:
+        frac = min(max(step, 0) / max(self.decay_steps, 1), 1.0)
+        return self.sigma_start + (self.sigma_end - self.sigma_start) * frac
+
+    def __call__(self, greedy_action: Tensor, step: int, generator: torch.Generator) -> Tensor:
+        """[..., 1] greedy action -> [..., 1] noisy action inside [low, high]."""
+        return noisy_greedy_action(
+            greedy_action, self.sigma(step), generator, low=self.low, high=self.high
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# Engineered fast path
+# ----------------------------------------------------------------------------------------------
+
+
+class TransitionReplay:
+    """Uniform ring-buffer replay of packed transitions (one float tensor, one row each).
+
+    Row layout (``obs_dim = d``): ``[obs (d) | action | reward | terminated | next_obs (d)]``,
+    so one ``index_select`` gathers a whole batch of minibatches.
+
+    Args:
+        capacity: number of transitions kept (oldest overwritten first).
+        obs_dim: observation size.
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        obs_dim: int = 7,
+        *,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.capacity = int(capacity)
+        self.obs_dim = int(obs_dim)
+        self.row_dim = 2 * self.obs_dim + 3
+        self.storage = torch.zeros(self.capacity, self.row_dim, device=device, dtype=dtype)
+        self._cursor = 0
+        self._size = 0
+
+    def __len__(self) -> int:
+        return self._size
+
+    def pack(
+        self, obs: Tensor, action: Tensor, reward: Tensor, terminated: Tensor, next_obs: Tensor
+    ) -> Tensor:
+        """[N, d], [N, 1], [N, 1], [N, 1] (bool), [N, d] -> packed rows [N, 2d + 3]."""
+        n = obs.shape[0]
+        dt = self.storage.dtype
+        return torch.cat(
+            [
+                obs.reshape(n, self.obs_dim).to(dt),
+                action.reshape(n, 1).to(dt),
+                reward.reshape(n, 1).to(dt),
+                terminated.reshape(n, 1).to(dt),
+                next_obs.reshape(n, self.obs_dim).to(dt),
+            ],
+            dim=-1,
+        )
+
+    def extend(
+        self, obs: Tensor, action: Tensor, reward: Tensor, terminated: Tensor, next_obs: Tensor
+    ) -> None:
+        """Append N transitions (leading dim N; see :meth:`pack` for shapes)."""
+        self.extend_packed(self.pack(obs, action, reward, terminated, next_obs))
+
+    def extend_tensordict(
+        self, td: TensorDictBase, keys: QuadraticQLoss._AcceptedKeys | None = None
+    ) -> None:
+        """Append a flat [N] tensordict laid out as :class:`QuadraticQLoss` reads it."""
+        k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
+        self.extend(
+            _get(td, k.observation),
+            _get(td, k.action),
+            _get(td, ("next", k.reward)),
+            _get(td, ("next", k.terminated)),
+            _get(td, ("next", k.observation)),
+        )
+
+    def extend_packed(self, rows: Tensor) -> None:
+        """Append packed rows [N, 2d + 3]; keeps the newest ``capacity`` if N is larger."""
+        rows = rows[-self.capacity :].to(self.storage.dtype)
+        n = rows.shape[0]
+        first = min(n, self.capacity - self._cursor)
+        self.storage[self._cursor : self._cursor + first] = rows[:first]
+        if n > first:
+            self.storage[: n - first] = rows[first:]
+        self._cursor = (self._cursor + n) % self.capacity
+        self._size = min(self._size + n, self.capacity)
+
+    def sample_indices(self, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
+        """Uniform indices with replacement, e.g. shape ``(k, 32)`` for k minibatches."""
+        if self._size == 0:
+            raise RuntimeError("cannot sample from an empty TransitionReplay")
+        return torch.randint(0, self._size, shape, generator=generator, device=self.storage.device)
+
+    def sample(self, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
+        """Packed rows ``[*shape, 2d + 3]``."""
+        idx = self.sample_indices(shape, generator)
+        return self.storage.index_select(0, idx.reshape(-1)).reshape(*shape, self.row_dim)
+
+    def to_tensordict(self, rows: Tensor, keys: QuadraticQLoss._AcceptedKeys | None = None):
+        """Packed rows [..., 2d + 3] -> TensorDict with the :class:`QuadraticQLoss` layout."""
+        k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
+        d = self.obs_dim
+        return TensorDict(
+            {
+                k.observation: rows[..., :d],
+                k.action: rows[..., d : d + 1],
+                ("next", k.reward): rows[..., d + 1 : d + 2],
+                ("next", k.terminated): rows[..., d + 2 : d + 3] > 0.5,
+                ("next", k.observation): rows[..., d + 3 :],
+            },
+            batch_size=rows.shape[:-1],
+        )
+
+
+@dataclass(frozen=True)
+class _FastSpec:
+    """Constants baked into the fast update (Python floats, so compile treats them as such)."""
+
+    obs_dim: int
+    hidden: int
+    a_min: float
+    a_span: float
+    low: float
+    span: float
+    gamma: float
+    lr: float
+    beta1: float
+    beta2: float
+    eps: float
+
+
+def _param_layout(obs_dim: int, hidden: int) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
+    """Order and shapes of the :class:`QuadraticQNet` parameters in the flat buffers."""
+    h3 = 3 * hidden
+    return [
+        (("hidden", "weight"), (h3, obs_dim)),
+        (("hidden", "bias"), (h3,)),
+        (("head_weight",), (3, hidden)),
+        (("head_bias",), (3,)),
+    ]
+
+
+def _unflatten(flat: Tensor, obs_dim: int, hidden: int) -> list[Tensor]:
+    out, o = [], 0
+    for _, shape in _param_layout(obs_dim, hidden):
+        n = math.prod(shape)
+        out.append(flat[o : o + n].view(shape))
+        o += n
+    return out
+
+
+def _fast_chunk(
+    spec: _FastSpec,
+    flat: Tensor,
+    target_flat: Tensor,
+    exp_avg: Tensor,
+    exp_avg_sq: Tensor,
+    adam_scalars: Tensor,
+    rows: Tensor,
+) -> Tensor:
+    """k sequential TD(0) + Adam updates on packed minibatches ``rows`` [k, B, 2d + 3].
+
+    ``flat``/``exp_avg``/``exp_avg_sq`` [P] are updated in place; ``target_flat`` [P] is read
+    only (the target is fixed within a chunk, so all k targets come from one matmul).
+    ``adam_scalars`` [k, 2] = (lr / (1 - beta1^t), sqrt(1 - beta2^t)) per update, computed in
+    double precision like non-capturable ``torch.optim.Adam``. Gradients are written by hand
+    (checked against autograd of :class:`QuadraticQLoss` in the tests). Returns losses [k].
+    """
+    d, hd = spec.obs_dim, spec.hidden
+    k, bsz = rows.shape[0], rows.shape[1]
+    obs = rows[..., :d]  # [k, B, d]
+    act = rows[..., d]  # [k, B]
+    rew = rows[..., d + 1]  # [k, B]
+    not_term = 1.0 - rows[..., d + 2]  # [k, B]
+    next_obs = rows[..., d + 3 :]  # [k, B, d]
+
+    # Target: max_a' Q_target(s', a') = C_target(s'); only the C head is evaluated.
+    tw1, tb1, tw2, tb2 = _unflatten(target_flat, d, hd)
+    c_sl = slice(HEAD_C * hd, (HEAD_C + 1) * hd)
+    h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, H]
+    v_next = torch.matmul(h_next, tw2[HEAD_C]) + tb2[HEAD_C]  # [k, B]
+    y = rew + spec.gamma * not_term * v_next  # [k, B]
+
+    w1, b1, w2, b2 = _unflatten(flat, d, hd)
+    losses = []
+    for i in range(k):
+        x = obs[i]  # [B, d]
+        a = act[i]  # [B]
+        pre = torch.addmm(b1, x, w1.t())  # [B, 3H]
+        h = torch.relu(pre).view(bsz, 3, hd)  # [B, 3, H]
+        z = (h * w2).sum(-1) + b2  # [B, 3]
+        s_a = torch.sigmoid(z[:, HEAD_A])
+        s_b = torch.sigmoid(z[:, HEAD_B])
+        big_a = -(spec.a_min + spec.a_span * s_a)  # [B]
+        diff = spec.low + spec.span * s_b - a  # B(s) - a, [B]
+        q = big_a * diff * diff + z[:, HEAD_C]  # [B]
+        delta = q - y[i]
+        losses.append((delta * delta).mean())
+        # Backward of mean(delta^2) by hand.
+        g = delta * (2.0 / bsz)  # dL/dq [B]
+        dz = torch.stack(
+            [
+                g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
+                g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b),
+                g,
+            ],
+            dim=-1,
+        )  # [B, 3]
+        dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [3, H]
+        db2 = dz.sum(0)  # [3]
+        dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, 3 * hd), 0.0)  # [B, 3H]
+        dw1_t = torch.mm(x.t(), dpre)  # [d, 3H]; 2-3x faster than mm(dpre.t(), x) here
+        db1 = dpre.sum(0)  # [3H]
+        grad = torch.cat([dw1_t.t().reshape(-1), db1, dw2.reshape(-1), db2])  # [P]
+        # Adam (torch.optim.Adam semantics: no weight decay, no amsgrad).
+        exp_avg.lerp_(grad, 1.0 - spec.beta1)
+        exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
+        denom = exp_avg_sq.sqrt() / adam_scalars[i, 1] + spec.eps
+        flat.sub_(adam_scalars[i, 0] * exp_avg / denom)
+    return torch.stack(losses)
+
+
+class FastQuadQUpdater:
+    """Engineered update path for :class:`QuadraticQLoss` with a :class:`QuadraticQNet`.
+
+    Per call of :meth:`step`: sample ``k`` minibatches of ``batch_size`` in one ``randint`` +
+    ``index_select`` from a :class:`TransitionReplay`, compute all k TD targets with the target
+    network in one matmul, then run k sequential updates (hand-written gradients of the same
+    loss as :class:`QuadraticQLoss`, Adam on one flat parameter vector), optionally as one
+    ``torch.compile``-d call. The target is copied every ``target_update_period`` updates.
+
+    The online and target parameters of ``loss`` (and therefore of the network passed to the
+    loss) are re-pointed to views of two flat buffers, so the loss module, the acting network
+    and this updater always share the same weights: no syncing is needed.
+
+    Measured on 2 shared CPU cores (``benchmarks/bench_update.py``), minibatch 32, hidden 64,
+    ``torch.set_num_threads(1)``: compiled k=10 ~18-27k updates/s (compile ~20 s cold, ~1 s
+    from the inductor cache), eager k=10 ~2.6-3.8k/s, vs ~0.3-0.8k/s for the plain torchrl
+    LossModule + ReplayBuffer loop. Two threads are slower (tiny kernels, shared cores).
+
+    Semantics vs. one sample + one update per call: identical loss and optimiser; the only
+    difference is that the k minibatches are drawn from the buffer as it is at the start of the
+    call (k env steps of staleness at most if you interleave 1 env step per update).
+
+    Args:
+        loss: the loss module (its network must be a :class:`QuadraticQNet`).
+        replay: the replay to sample from when :meth:`step` gets no rows; ``None`` if the
+            caller always passes rows (e.g. sampled from a torchrl ``ReplayBuffer``).
+
+    Keyword Args:
+        lr, betas, eps: Adam hyperparameters (paper: lr 1e-3).
+        batch_size: minibatch size (paper: 32).
+        updates_per_call: k; must divide ``target_update_period``.
+        target_update_period: p, hard copy online -> target every p updates (paper: 500).
+        compile: wrap the chunk in ``torch.compile(fullgraph=True, dynamic=False)``.
+        generator: RNG for sampling minibatch indices (required: no global RNG).
+    """
+
+    def __init__(
+        self,
+        loss: QuadraticQLoss,
+        replay: TransitionReplay | None,
+        *,
+        generator: torch.Generator,
+        lr: float = 1e-3,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+        batch_size: int = 32,
+        updates_per_call: int = 10,
+        target_update_period: int = 500,
+        compile: bool = False,
+        compile_kwargs: dict | None = None,
+    ) -> None:
+        net = loss.value_network
+        if not isinstance(net, QuadraticQNet):
+            raise TypeError("FastQuadQUpdater needs a QuadraticQLoss built on a QuadraticQNet")
+        if target_update_period % updates_per_call != 0:
+            raise ValueError("updates_per_call must divide target_update_period")
+        if replay is not None and replay.obs_dim != net.obs_dim:
+            raise ValueError("replay.obs_dim != network obs_dim")
+        self.loss = loss
+        self.replay = replay
+        self.generator = generator
+        self.batch_size = int(batch_size)
+        self.k = int(updates_per_call)
+        self.period = int(target_update_period)
+        self.lr = float(lr)
+        self.betas = (float(betas[0]), float(betas[1]))
+        self.num_updates = 0
+        self.spec = _FastSpec(
+            obs_dim=net.obs_dim,
+            hidden=net.hidden_dim,
+            a_min=net.a_min,
+            a_span=net.a_max - net.a_min,
+            low=net.action_low,
+            span=net.action_span,
+            gamma=float(loss.gamma),
+            lr=self.lr,
+            beta1=self.betas[0],
+            beta2=self.betas[1],
+            eps=float(eps),
+        )
+        # This object owns the target updates: silence torchrl's "no updater" warning.
+        loss._has_update_associated["value_network"] = True
+        self.flat = self._alias(loss.value_network_params)
+        self.target_flat = self._alias(loss.target_value_network_params)
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
+        self._fn: Callable[..., Tensor] = self._eager_chunk
+        self.compile_time_s: float | None = None
+        if compile:
+            kw = {"fullgraph": True, "dynamic": False}
+            kw.update(compile_kwargs or {})
+            self._fn = torch.compile(self._eager_chunk, **kw)
+
+    def _alias(self, params: TensorDictParams) -> Tensor:
+        """Copy ``params`` into one flat buffer and re-point each tensor to a view of it."""
+        s = self.spec
+        layout = _param_layout(s.obs_dim, s.hidden)
+        tensors = [params.get(key) for key, _ in layout]
+        for t, (key, shape) in zip(tensors, layout, strict=True):
+            if tuple(t.shape) != shape:
+                raise ValueError(f"parameter {key} has shape {tuple(t.shape)}, expected {shape}")
+        flat = torch.cat([t.detach().reshape(-1) for t in tensors])
+        for t, view in zip(tensors, _unflatten(flat, s.obs_dim, s.hidden), strict=True):
+            t.data = view
+        return flat
+
+    def _eager_chunk(
+        self,
+        flat: Tensor,
+        target_flat: Tensor,
+        exp_avg: Tensor,
+        exp_avg_sq: Tensor,
+        adam_scalars: Tensor,
+        rows: Tensor,
+    ) -> Tensor:
+        return _fast_chunk(self.spec, flat, target_flat, exp_avg, exp_avg_sq, adam_scalars, rows)
+
+    def _adam_scalars(self) -> Tensor:
+        b1, b2 = self.betas
+        vals = []
+        for t in range(self.num_updates + 1, self.num_updates + self.k + 1):
+            vals.append((self.lr / (1.0 - b1**t), math.sqrt(1.0 - b2**t)))
+        return torch.tensor(vals, dtype=self.flat.dtype, device=self.flat.device)  # [k, 2]
+
+    def state_dict(self) -> dict[str, Tensor | int]:
+        """Optimiser state (weights are in ``loss.state_dict()``, target included)."""
+        return {
+            "num_updates": self.num_updates,
+            "exp_avg": self.exp_avg.clone(),
+            "exp_avg_sq": self.exp_avg_sq.clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Tensor | int]) -> None:
+        self.num_updates = int(state["num_updates"])
+        self.exp_avg.copy_(state["exp_avg"])
+        self.exp_avg_sq.copy_(state["exp_avg_sq"])
+
+    @torch.no_grad()
+    def step(self, rows: Tensor | None = None) -> Tensor:
+        """Run k updates; ``rows`` [k, B, 2d + 3] overrides sampling. Returns losses [k]."""
+        if rows is None:
+            if self.replay is None:
+                raise ValueError("no replay to sample from: pass rows [k, batch, 2d + 3]")
+            rows = self.replay.sample((self.k, self.batch_size), self.generator)
+        if rows.shape[0] != self.k:
+            raise ValueError(f"rows must hold k={self.k} minibatches, got {rows.shape[0]}")
+        scalars = self._adam_scalars()
+        if self.compile_time_s is None and self._fn is not self._eager_chunk:
+            t0 = time.perf_counter()
+            losses = self._fn(
+                self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
+            )
+            self.compile_time_s = time.perf_counter() - t0
+        else:
+            losses = self._fn(
+                self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
+            )
+        self.num_updates += self.k
+        if self.num_updates % self.period == 0:
+            self.target_flat.copy_(self.flat)
+        return losses

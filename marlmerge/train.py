@@ -1,0 +1,590 @@
+"""Training the ego with the paper's quadratic-Q learner on torchrl: the whole loop in `train()`.
+
+Data flows through torchrl: a `Collector` steps `BatchedMergeEnv` (B worlds, one ego each,
+scripted mainline traffic) with the noisy greedy policy; transitions go into a torchrl
+`ReplayBuffer` (packed rows in a `LazyTensorStorage`); minibatches go to the update. The update is
+`FastQuadQUpdater` (hand-written gradients of `QuadraticQLoss`, Adam, optionally compiled) or, with
+`update_path = "torchrl"`, the `QuadraticQLoss` LossModule with `torch.optim.Adam` and a hard
+target update: the same loss, slower.
+
+The paper's schedule (Table 1): one gradient update per simulator step, so `action_repeat` (k)
+updates per stored transition; target copied every p updates. With B worlds, each env step stores B
+transitions and owes B * k updates.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+from marlmerge.batched_env import BatchedMergeEnv
+from marlmerge.config import from_dict, to_dict, tomllib
+from marlmerge.core import OUTCOME_NAMES, TrafficState
+from marlmerge.learners.quadq import (
+    FastQuadQUpdater,
+    GaussianExploration,
+    PeriodicHardUpdate,
+    QuadraticQLoss,
+    QuadraticQNet,
+)
+from marlmerge.reward import EGO_TERMS
+
+UPDATE_PATHS = ("compiled", "fast", "torchrl")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. Defaults are the paper's recipe (Sec. IV.B, Table 1)."""
+
+    name: str = "paper"
+    """Run name; outputs go to `runs/<name>` unless `--out` says otherwise."""
+    scenario: str = "default"
+    """Scenario preset in `envs/` (or a path) the ego trains in."""
+    seed: int = 0
+    """Seeds the traffic, the network initialisation, exploration noise and replay sampling."""
+    total_sim_steps: int = 1_600_000
+    """N: simulator steps of ego experience, summed over all worlds (paper: 1.6 M)."""
+    num_worlds: int = 32
+    """B: independent worlds stepped together, each with its own ego, feeding one buffer."""
+    env_steps_per_batch: int = 4
+    """Env steps per world in each collector batch; updates follow each batch."""
+    updates_per_sim_step: float = 1.0
+    """Gradient updates per simulator step of experience (paper: 1, i.e. k per transition)."""
+    batch_size: int = 32
+    """M: minibatch size."""
+    gamma: float = 0.95
+    lr: float = 1.0e-3
+    target_update_period: int = 500
+    """p: the target network is a copy of the online one, refreshed every p updates."""
+    hidden: int = 64
+    """Hidden width of each of the A, B, C networks (two layers each)."""
+    replay_capacity: int = 200_000
+    """Transitions kept in the replay buffer (oldest dropped first)."""
+    learning_starts: int = 1_000
+    """No updates until the buffer holds this many transitions (those updates are skipped)."""
+    sigma_start: float = 1.0
+    """Exploration: std of the Gaussian noise on the greedy action at the start, m/s^2."""
+    sigma_end: float = 0.1
+    """... decaying linearly to this ..."""
+    sigma_decay_fraction: float = 0.5
+    """... over this fraction of `total_sim_steps`, then constant."""
+    update_path: str = "compiled"
+    """"compiled" (torch.compile of the fast path), "fast" (same, eager) or "torchrl"."""
+    updates_per_call: int = 10
+    """Updates fused into one call of the fast path; must divide `target_update_period`."""
+    threads: int = 1
+    """torch threads (tiny networks run fastest on one)."""
+    loss_log_every: int = 5
+    """Log the loss every this many updates (the paper stores it every 5 steps)."""
+    checkpoint_every_sim_steps: int = 200_000
+    """Checkpoint interval; a killed run resumes from its last checkpoint."""
+    eval_episodes: int = 200
+    """Greedy evaluation after training: this many held-out episodes ..."""
+    eval_seed: int = 1_000_000
+    """... on roads seeded from here on (training seeds are small numbers)."""
+    eval_worlds: int = 50
+    """Episodes evaluated in parallel (one seed per group of this many)."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (
+                self.update_path in UPDATE_PATHS,
+                f"update_path must be one of {UPDATE_PATHS}, got {self.update_path!r}",
+            ),
+            (self.total_sim_steps > 0, f"total_sim_steps must be > 0, got {self.total_sim_steps}"),
+            (self.num_worlds >= 1, f"num_worlds must be >= 1, got {self.num_worlds}"),
+            (
+                self.target_update_period % self.updates_per_call == 0,
+                f"updates_per_call ({self.updates_per_call}) must divide target_update_period "
+                f"({self.target_update_period})",
+            ),
+            (0.0 < self.gamma < 1.0, f"gamma must lie in (0, 1), got {self.gamma}"),
+            (self.eval_episodes >= 0, f"eval_episodes must be >= 0, got {self.eval_episodes}"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(msg)
+
+
+def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:
+    """A training preset (TOML), loaded strictly, with optional field overrides."""
+    path = Path(path)
+    if not path.exists():
+        known = sorted(
+            p.stem for p in (Path(__file__).resolve().parent.parent / "trainers").glob("*.toml")
+        )
+        candidate = Path(__file__).resolve().parent.parent / "trainers" / f"{path.stem}.toml"
+        if not candidate.exists():
+            raise ValueError(f"unknown training preset {str(path)!r} (known: {', '.join(known)})")
+        path = candidate
+    with path.open("rb") as fh:
+        data = tomllib.load(fh)
+    data.setdefault("name", path.stem)
+    data.update(overrides)
+    try:
+        return from_dict(TrainConfig, data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
+
+
+# ----------------------------------------------------------------------------------------------
+# Policy used by the collector
+# ----------------------------------------------------------------------------------------------
+
+
+class NoisyGreedyPolicy:
+    """Collector policy: `action = clip(B(s) + sigma(step) * N(0, 1))`; greedy if `noisy=False`."""
+
+    def __init__(
+        self, net: QuadraticQNet, exploration: GaussianExploration, generator: torch.Generator
+    ):
+        self.net = net
+        self.exploration = exploration
+        self.generator = generator
+        self.sim_step = 0
+        self.noisy = True
+
+    @torch.no_grad()
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        action = self.net.greedy(td.get("observation"))  # [B, 1]
+        if self.noisy:
+            action = self.exploration(action, self.sim_step, self.generator)
+        td.set("action", action)
+        return td
+
+
+# ----------------------------------------------------------------------------------------------
+# Logging
+# ----------------------------------------------------------------------------------------------
+
+LOSS_FIELDS = ("update", "sim_step", "loss")
+EGO_FIELDS = ("ego", "sim_step", "world", "outcome", "time_s", "total_reward", *EGO_TERMS)
+
+
+class CsvLog:
+    """Append-only CSV that can be cut back to a checkpoint's row count on resume."""
+
+    def __init__(self, path: Path, fields: tuple[str, ...], keep_rows: int | None):
+        self.path = path
+        self.fields = fields
+        rows: list[list[str]] = []
+        if keep_rows is not None and path.exists():
+            with path.open(newline="") as fh:
+                rows = list(csv.reader(fh))[1 : 1 + keep_rows]
+        self.rows = len(rows)
+        self.fh = path.open("w", newline="")
+        self.writer = csv.writer(self.fh)
+        self.writer.writerow(fields)
+        self.writer.writerows(rows)
+
+    def write(self, row: list[Any]) -> None:
+        self.writer.writerow(row)
+        self.rows += 1
+
+    def flush(self) -> None:
+        self.fh.flush()
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+class EgoTracker:
+    """Sums each world's reward terms over its current ego's episode; emits a row when it ends."""
+
+    def __init__(self, num_worlds: int, step_time_s: float):
+        self.sums = np.zeros((num_worlds, len(EGO_TERMS)))  # [B, terms]
+        self.steps = np.zeros(num_worlds, dtype=np.int64)  # env steps of the current ego
+        self.egos = 0
+        self.step_time_s = step_time_s
+
+    def update(self, batch: TensorDictBase, sim_step_end: int, k: int, log: CsvLog) -> list[dict]:
+        """batch: collector output [B, T]. Returns the finished egos' rows, in time order."""
+        nxt = batch.get("next")
+        terms = torch.stack([nxt.get(("reward_terms", t)) for t in EGO_TERMS], -1)
+        terms = terms.reshape(*batch.batch_size, len(EGO_TERMS)).numpy()  # [B, T, terms]
+        done = nxt.get("done").reshape(batch.batch_size).numpy()  # [B, T]
+        outcome = nxt.get("outcome").reshape(batch.batch_size).numpy()
+        b, t_len = batch.batch_size
+        finished = []
+        for t in range(t_len):
+            self.sums += terms[:, t]
+            self.steps += 1
+            sim_step = sim_step_end - (t_len - 1 - t) * b * k
+            for w in np.flatnonzero(done[:, t]):
+                row = {
+                    "ego": self.egos,
+                    "sim_step": sim_step,
+                    "world": int(w),
+                    "outcome": OUTCOME_NAMES[int(outcome[w, t])],
+                    "time_s": round(float(self.steps[w] * self.step_time_s), 3),
+                    "total_reward": float(self.sums[w].sum()),
+                    **{name: float(self.sums[w, i]) for i, name in enumerate(EGO_TERMS)},
+                }
+                log.write([row[f] for f in EGO_FIELDS])
+                finished.append(row)
+                self.egos += 1
+                self.sums[w] = 0.0
+                self.steps[w] = 0
+        return finished
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkpoints
+# ----------------------------------------------------------------------------------------------
+
+
+def _core_state(env: BatchedMergeEnv) -> dict[str, Any]:
+    core = env.core
+    return {
+        "state": {
+            f.name: getattr(core.state, f.name).copy() for f in dataclasses.fields(TrafficState)
+        },
+        "rng": core.rng.bit_generator.state,
+        "step_count": core.step_count,
+    }
+
+
+def _restore_core(env: BatchedMergeEnv, saved: dict[str, Any]) -> None:
+    core = env.core
+    core.state = TrafficState(**saved["state"])
+    core.rng.bit_generator.state = saved["rng"]
+    core.step_count = saved["step_count"]
+    core.nb = core._neighbours(core.state)
+    core._version += 1
+    env.resume_without_reset()
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    """Write atomically: a run killed while saving keeps its previous checkpoint."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------------------------
+# The loop
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TrainResult:
+    out_dir: Path
+    sim_steps: int
+    updates: int
+    egos: int
+    wall_s: float
+    update_s: float
+    collect_s: float
+    compile_s: float | None
+    evaluation: dict[str, float] | None
+
+
+def train(
+    cfg: TrainConfig,
+    out_dir: str | Path,
+    resume: bool = False,
+    progress: bool = True,
+    stop_after_sim_steps: int | None = None,
+) -> TrainResult:
+    """Run (or resume) training; writes logs, checkpoints, the evaluation and the plots.
+
+    `stop_after_sim_steps` ends the run abruptly at that step without checkpointing, as a kill
+    would (used by the resume test).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / "checkpoint.pt"
+    ckpt = None
+    if resume:
+        if not ckpt_path.exists():
+            raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
+        ckpt = torch.load(ckpt_path, weights_only=False)
+        saved_cfg = from_dict(TrainConfig, ckpt["config"])
+        if saved_cfg != cfg:
+            cfg = saved_cfg  # the checkpoint's config wins: a resumed run continues that run
+    (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=1))
+    torch.set_num_threads(cfg.threads)
+
+    # ---- environment, network, loss, exploration
+    env = BatchedMergeEnv(cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed)
+    scen = env.cfg
+    k = scen.sim.action_repeat
+    lo, hi = scen.ego.accel_bounds_mps2
+    init_gen = torch.Generator().manual_seed(cfg.seed)
+    net = QuadraticQNet(7, cfg.hidden, action_low=lo, action_high=hi, generator=init_gen)
+    loss_module = QuadraticQLoss(net, gamma=cfg.gamma)
+    noise_gen = torch.Generator().manual_seed(cfg.seed + 1)
+    sample_gen = torch.Generator().manual_seed(cfg.seed + 2)
+    exploration = GaussianExploration(
+        cfg.sigma_start,
+        cfg.sigma_end,
+        max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1),
+        lo,
+        hi,
+    )
+    policy = NoisyGreedyPolicy(net, exploration, noise_gen)
+
+    # ---- replay: torchrl buffer of packed transitions [obs | action | reward | term | next_obs]
+    replay = ReplayBuffer(storage=LazyTensorStorage(cfg.replay_capacity), generator=sample_gen)
+
+    # ---- update path (weights restored first: the fast path aliases them into flat buffers)
+    if ckpt is not None:
+        loss_module.load_state_dict(ckpt["loss"])
+    if cfg.update_path == "torchrl":
+        optimizer = torch.optim.Adam(loss_module.parameters(), lr=cfg.lr)
+        target_updater = PeriodicHardUpdate(loss_module, period=cfg.target_update_period)
+        fast = None
+    else:
+        fast = FastQuadQUpdater(
+            loss_module,
+            None,
+            generator=sample_gen,
+            lr=cfg.lr,
+            batch_size=cfg.batch_size,
+            updates_per_call=cfg.updates_per_call,
+            target_update_period=cfg.target_update_period,
+            compile=cfg.update_path == "compiled",
+        )
+
+    sim_steps = updates = 0
+    if ckpt is not None:
+        if fast is not None:
+            fast.load_state_dict(ckpt["optimizer"])
+        else:
+            optimizer.load_state_dict(ckpt["optimizer"])
+            target_updater.load_state_dict(ckpt["target_updater"])
+        replay.load_state_dict(ckpt["replay"])
+        sample_gen.set_state(ckpt["sample_gen"])
+        _restore_core(env, ckpt["env"])
+        sim_steps, updates = ckpt["sim_steps"], ckpt["updates"]
+        policy.sim_step = sim_steps
+
+    # ---- logs (cut back to the checkpoint on resume, so the curves continue without overlap)
+    loss_log = CsvLog(out / "loss.csv", LOSS_FIELDS, ckpt["loss_rows"] if ckpt else None)
+    ego_log = CsvLog(out / "egos.csv", EGO_FIELDS, ckpt["ego_rows"] if ckpt else None)
+    tracker = EgoTracker(cfg.num_worlds, k * scen.sim.dt_s)
+    if ckpt is not None:
+        tracker.sums[:] = ckpt["tracker_sums"]
+        tracker.steps[:] = ckpt["tracker_steps"]
+        tracker.egos = ckpt["egos"]
+    tb = _tensorboard(out)
+
+    frames_per_batch = cfg.num_worlds * cfg.env_steps_per_batch
+    remaining_frames = math.ceil((cfg.total_sim_steps - sim_steps) / k)
+    remaining_frames = max(
+        frames_per_batch, math.ceil(remaining_frames / frames_per_batch) * frames_per_batch
+    )
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=frames_per_batch,
+        total_frames=remaining_frames,
+        auto_register_policy_transforms=False,
+    )
+    if ckpt is not None:  # after the collector, which runs the policy once while it sets up
+        noise_gen.set_state(ckpt["noise_gen"])
+    bar = _progress(cfg.total_sim_steps, sim_steps, progress)
+    next_ckpt = (sim_steps // cfg.checkpoint_every_sim_steps + 1) * cfg.checkpoint_every_sim_steps
+    t_start = time.perf_counter()
+    update_s = collect_s = 0.0
+    t_collect = time.perf_counter()
+    recent: list[dict] = []
+
+    def checkpoint() -> None:
+        loss_log.flush()
+        ego_log.flush()
+        save_checkpoint(
+            ckpt_path,
+            {
+                "config": to_dict(cfg),
+                "loss": loss_module.state_dict(),
+                "optimizer": fast.state_dict() if fast is not None else optimizer.state_dict(),
+                "target_updater": None if fast is not None else target_updater.state_dict(),
+                "replay": replay.state_dict(),
+                "noise_gen": noise_gen.get_state(),
+                "sample_gen": sample_gen.get_state(),
+                "env": _core_state(env),
+                "sim_steps": sim_steps,
+                "updates": updates,
+                "egos": tracker.egos,
+                "tracker_sums": tracker.sums.copy(),
+                "tracker_steps": tracker.steps.copy(),
+                "loss_rows": loss_log.rows,
+                "ego_rows": ego_log.rows,
+            },
+        )
+
+    for batch in collector:
+        collect_s += time.perf_counter() - t_collect
+        # ---- store transitions
+        flat = batch.reshape(-1)
+        nxt = flat.get("next")
+        rows = torch.cat(
+            [
+                flat.get("observation"),
+                flat.get("action"),
+                nxt.get("reward"),
+                nxt.get("terminated").float(),
+                nxt.get("observation"),
+            ],
+            -1,
+        )
+        replay.extend(rows)
+        sim_steps += flat.numel() * k
+        policy.sim_step = sim_steps
+        recent += tracker.update(batch, sim_steps, k, ego_log)
+
+        # ---- updates owed to the new experience (paper: one per simulator step)
+        t_upd = time.perf_counter()
+        owed = int(sim_steps * cfg.updates_per_sim_step) - updates
+        if len(replay) < cfg.learning_starts:
+            updates += owed  # skipped: too little data to learn from yet
+        elif fast is not None:
+            n_calls = owed // fast.k
+            for _ in range(n_calls):
+                mb = replay.sample(fast.k * cfg.batch_size).view(fast.k, cfg.batch_size, -1)
+                losses = fast.step(mb)
+                first = (-(updates + 1)) % cfg.loss_log_every  # update n = updates + j + 1
+                for j in range(first, fast.k, cfg.loss_log_every):
+                    loss_log.write([updates + j + 1, sim_steps, float(losses[j])])
+                updates += fast.k
+        else:
+            for _ in range(owed):
+                td = _rows_to_td(replay.sample(cfg.batch_size), 7)
+                out_td = loss_module(td)
+                optimizer.zero_grad()
+                out_td["loss_value"].backward()
+                optimizer.step()
+                target_updater.step()
+                updates += 1
+                if updates % cfg.loss_log_every == 0:
+                    loss_log.write([updates, sim_steps, float(out_td["loss_value"])])
+        update_s += time.perf_counter() - t_upd
+
+        if bar is not None:
+            bar.update(flat.numel() * k)
+            if recent:
+                last = recent[-200:]
+                bar.set_postfix(
+                    egos=tracker.egos,
+                    success=f"{np.mean([r['outcome'] == 'success' for r in last]):.2f}",
+                    reward=f"{np.mean([r['total_reward'] for r in last]):.1f}",
+                )
+        if tb is not None and recent:
+            for r in recent:
+                tb.add_scalar("charts/total_reward", r["total_reward"], r["ego"])
+        recent = recent[-200:]
+        if sim_steps >= next_ckpt or sim_steps >= cfg.total_sim_steps:
+            checkpoint()
+            next_ckpt += cfg.checkpoint_every_sim_steps
+        if stop_after_sim_steps is not None and sim_steps >= stop_after_sim_steps:
+            loss_log.flush()  # a kill: logs written past the last checkpoint, no new checkpoint
+            ego_log.flush()
+            break
+        t_collect = time.perf_counter()
+    collector.shutdown()
+    if bar is not None:
+        bar.close()
+    loss_log.close()
+    ego_log.close()
+    wall = time.perf_counter() - t_start
+    finished = sim_steps >= cfg.total_sim_steps
+
+    evaluation = None
+    if finished:
+        torch.save(
+            {"config": to_dict(cfg), "scenario": to_dict(scen), "net": net.state_dict()},
+            out / "policy.pt",
+        )
+        if cfg.eval_episodes > 0:
+            from marlmerge.evaluate import evaluate_greedy
+
+            evaluation = evaluate_greedy(
+                net, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+            )
+            (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1))
+        from marlmerge.plots import plot_run
+
+        plot_run(out)
+    result = TrainResult(
+        out,
+        sim_steps,
+        updates,
+        tracker.egos,
+        wall,
+        update_s,
+        collect_s,
+        fast.compile_time_s if fast is not None else None,
+        evaluation,
+    )
+    (out / "timing.json").write_text(
+        json.dumps(
+            {
+                "wall_s": wall,
+                "update_s": update_s,
+                "collect_s": collect_s,
+                "compile_s": result.compile_s,
+                "sim_steps": sim_steps,
+                "updates": updates,
+                "egos": tracker.egos,
+                "updates_per_s": updates / max(update_s, 1e-9),
+                "env_steps_per_s": sim_steps / k / max(collect_s, 1e-9),
+            },
+            indent=1,
+        )
+    )
+    return result
+
+
+def _rows_to_td(rows: torch.Tensor, d: int) -> TensorDictBase:
+    from tensordict import TensorDict
+
+    return TensorDict(
+        {
+            "observation": rows[:, :d],
+            "action": rows[:, d : d + 1],
+            ("next", "reward"): rows[:, d + 1 : d + 2],
+            ("next", "terminated"): rows[:, d + 2 : d + 3] > 0.5,
+            ("next", "observation"): rows[:, d + 3 :],
+        },
+        batch_size=rows.shape[:1],
+    )
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        initial=initial,
+        unit="step",
+        unit_scale=True,
+        dynamic_ncols=True,
+        desc="train",
+        file=sys.stderr,
+    )
+
+
+def _tensorboard(out: Path):
+    """A TensorBoard writer if tensorboard is installed, else None."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(out / "tb"))

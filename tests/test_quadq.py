@@ -1,0 +1,399 @@
+"""Tests of the quadratic-in-action Q-learner (marlmerge.learners.quadq)."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import pathlib
+import sys
+import warnings
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+
+def _load_quadq():
+    try:
+        return importlib.import_module("marlmerge.learners.quadq")
+    except Exception:  # the package __init__ may be mid-edit: load the file on its own
+        path = pathlib.Path(__file__).resolve().parents[1] / "marlmerge" / "learners" / "quadq.py"
+        spec = importlib.util.spec_from_file_location("_quadq_standalone", path)
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # dataclasses look their module up here
+        spec.loader.exec_module(mod)
+        return mod
+
+
+qq = _load_quadq()
+LOW, HIGH = qq.DEFAULT_ACTION_BOUNDS
+OBS_DIM = 7
+
+
+@pytest.fixture(autouse=True)
+def _quiet_torchrl_target_warning():
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="No target network updater")
+        yield
+
+
+def _gen(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def _net(seed: int = 0, **kw) -> qq.QuadraticQNet:
+    return qq.QuadraticQNet(OBS_DIM, kw.pop("hidden", 16), generator=_gen(seed), **kw)
+
+
+def _batch(n: int, g: torch.Generator, terminated: torch.Tensor | None = None) -> TensorDict:
+    if terminated is None:
+        terminated = torch.rand(n, 1, generator=g) < 0.3
+    return TensorDict(
+        {
+            "observation": torch.randn(n, OBS_DIM, generator=g),
+            "action": torch.rand(n, 1, generator=g) * (HIGH - LOW) + LOW,
+            ("next", "reward"): torch.randn(n, 1, generator=g),
+            ("next", "terminated"): terminated,
+            ("next", "observation"): torch.randn(n, OBS_DIM, generator=g),
+        },
+        batch_size=[n],
+    )
+
+
+def _perturb_target(loss: qq.QuadraticQLoss, g: torch.Generator) -> None:
+    with torch.no_grad():
+        for t in loss.target_value_network_params.values(True, True):
+            t.add_(0.05 * torch.randn(t.shape, generator=g))
+
+
+def _filled_replay(n: int, g: torch.Generator) -> qq.TransitionReplay:
+    rep = qq.TransitionReplay(2 * n, OBS_DIM)
+    rep.extend_tensordict(_batch(n, g))
+    return rep
+
+
+# --- network ---------------------------------------------------------------------------------
+
+
+def test_argmax_over_action_grid_is_b_and_q_at_b_is_c():
+    net = _net()
+    obs = torch.randn(64, OBS_DIM, generator=_gen(1)) * 3.0
+    grid = torch.linspace(LOW, HIGH, 7001)  # spacing 1e-3 m/s^2
+    with torch.no_grad():
+        a, b, c = net(obs)
+        q = net.q(obs.unsqueeze(1), grid.view(1, -1, 1)).squeeze(-1)  # [64, 7001]
+        best = grid[q.argmax(dim=1)].unsqueeze(-1)
+        assert torch.all((b > LOW) & (b < HIGH))
+        torch.testing.assert_close(best, b, atol=1e-3, rtol=0)
+        torch.testing.assert_close(net.greedy(obs), b)
+        torch.testing.assert_close(net.q(obs, b), c, atol=1e-6, rtol=0)
+        torch.testing.assert_close(net.max_value(obs), c)
+        assert torch.all(q.max(dim=1).values.unsqueeze(-1) <= c + 1e-5)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e3, 1e6, -1e6])
+def test_curvature_is_finite_negative_and_bounded(scale: float):
+    net = _net(a_min=1e-3, a_max=5.0)
+    obs = torch.randn(256, OBS_DIM, generator=_gen(2)) * scale
+    with torch.no_grad():
+        a, b, c = net(obs)
+    for t in (a, b, c):
+        assert torch.isfinite(t).all()
+    assert torch.all(a < 0)
+    assert torch.all(a <= -1e-3) and torch.all(a >= -5.0)
+    assert torch.all((b >= LOW) & (b <= HIGH))
+
+
+def test_extreme_observations_give_finite_loss_and_grads():
+    net = _net()
+    loss = qq.QuadraticQLoss(net)
+    td = _batch(32, _gen(3))
+    td["observation"] = td["observation"] * 1e6
+    td["next", "observation"] = td["next", "observation"] * 1e6
+    out = loss(td)
+    out["loss_value"].backward()
+    assert torch.isfinite(out["loss_value"])
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters())
+
+
+def test_initial_curvature():
+    net = _net(a_init=0.1)
+    with torch.no_grad():
+        a = net(torch.zeros(1, OBS_DIM))[0]
+    # zero input -> hidden = relu(bias); head A = <h, w> + bias, so |A| is near a_init
+    assert 0.02 < -a.item() < 0.5
+
+
+# --- loss ------------------------------------------------------------------------------------
+
+
+def test_gradients_reach_online_params_never_target():
+    net = _net()
+    loss = qq.QuadraticQLoss(net)
+    _perturb_target(loss, _gen(4))
+    out = loss(_batch(32, _gen(5), terminated=torch.zeros(32, 1, dtype=torch.bool)))
+    out["loss_value"].backward()
+    online = list(loss.value_network_params.values(True, True))
+    assert all(p.requires_grad and p.grad is not None for p in online)
+    assert all(p.grad.abs().sum() > 0 for p in online)
+    targets = list(loss.target_value_network_params.values(True, True))
+    assert all((not t.requires_grad) and t.grad is None for t in targets)
+    # optimiser over loss.parameters() sees only the online parameters
+    ids = {id(p) for p in loss.parameters()}
+    assert ids == {id(p) for p in net.parameters()}
+    assert not ids & {id(t) for t in targets}
+    for key in ("td_error", "pred_value", "target_value", "A_mean", "B_mean", "C_mean"):
+        assert not out[key].requires_grad and out[key].shape == ()
+    assert out["A_mean"] < 0
+
+
+def test_loss_matches_manual_formula():
+    net = _net()
+    loss = qq.QuadraticQLoss(net, gamma=0.9)
+    _perturb_target(loss, _gen(6))
+    td = _batch(16, _gen(7))
+    out = loss(td)
+    target_net = _net()
+    with torch.no_grad():
+        for key, t in loss.target_value_network_params.items(True, True):
+            target_net.get_parameter(".".join(key) if isinstance(key, tuple) else key).copy_(t)
+        y = (
+            td["next", "reward"]
+            + 0.9 * (~td["next", "terminated"]).float() * target_net(td["next", "observation"])[2]
+        )
+        expected = (net.q(td["observation"], td["action"]) - y).pow(2).mean()
+    torch.testing.assert_close(out["loss_value"].detach(), expected)
+    assert td["td_error"].shape == (16, 1)  # priority written back, |delta|
+
+
+def test_terminal_transitions_are_not_bootstrapped():
+    loss = qq.QuadraticQLoss(_net(), gamma=0.95)
+    g = _gen(8)
+    td = _batch(8, g, terminated=torch.ones(8, 1, dtype=torch.bool))
+    y1 = loss.td_target(td)
+    torch.testing.assert_close(y1, td["next", "reward"])
+    td["next", "observation"] = torch.randn(8, OBS_DIM, generator=g) * 10
+    torch.testing.assert_close(loss.td_target(td), td["next", "reward"])
+    # not terminated: target moves with the next-state value, by gamma * C_target(s')
+    td["next", "terminated"] = torch.zeros(8, 1, dtype=torch.bool)
+    y2 = loss.td_target(td)
+    with torch.no_grad():
+        c_next = loss.value_network.max_value(td["next", "observation"])  # target == online now
+    torch.testing.assert_close(y2, td["next", "reward"] + 0.95 * c_next)
+    td["next", "observation"] = torch.randn(8, OBS_DIM, generator=g) * 10
+    assert not torch.allclose(loss.td_target(td), y2)
+
+
+def test_truncation_still_bootstraps():
+    loss = qq.QuadraticQLoss(_net(), gamma=0.95)
+    td = _batch(8, _gen(9), terminated=torch.zeros(8, 1, dtype=torch.bool))
+    td["next", "truncated"] = torch.ones(8, 1, dtype=torch.bool)
+    td["next", "done"] = torch.ones(8, 1, dtype=torch.bool)
+    with torch.no_grad():
+        c_next = loss.value_network.max_value(td["next", "observation"])
+    torch.testing.assert_close(loss.td_target(td), td["next", "reward"] + 0.95 * c_next)
+    assert not torch.allclose(loss.td_target(td), td["next", "reward"])
+
+
+def test_set_keys_remaps_inputs():
+    g = _gen(10)
+    plain = _batch(16, g)
+    loss = qq.QuadraticQLoss(_net())
+    ref = loss(plain.clone())["loss_value"]
+    loss.set_keys(
+        observation=("agents", "obs"),
+        action=("agents", "accel"),
+        reward="r",
+        terminated="term",
+        priority="prio",
+    )
+    assert ("next", "agents", "obs") in loss.in_keys and ("next", "r") in loss.in_keys
+    remapped = TensorDict(
+        {
+            ("agents", "obs"): plain["observation"],
+            ("agents", "accel"): plain["action"],
+            ("next", "r"): plain["next", "reward"],
+            ("next", "term"): plain["next", "terminated"],
+            ("next", "agents", "obs"): plain["next", "observation"],
+        },
+        batch_size=[16],
+    )
+    out = loss(remapped)
+    torch.testing.assert_close(out["loss_value"], ref)
+    assert "prio" in remapped.keys()
+    with pytest.raises(KeyError):
+        loss(plain.clone())
+    with pytest.raises(ValueError):
+        loss.set_keys(not_a_key="x")
+
+
+def test_kwargs_call():
+    loss = qq.QuadraticQLoss(_net())
+    td = _batch(4, _gen(11))
+    vals = loss(
+        observation=td["observation"],
+        action=td["action"],
+        next_reward=td["next", "reward"],
+        next_terminated=td["next", "terminated"],
+        next_observation=td["next", "observation"],
+    )
+    torch.testing.assert_close(vals[0], loss(td)["loss_value"])
+
+
+# --- target updates --------------------------------------------------------------------------
+
+
+def _same(a: TensorDict, b: TensorDict) -> bool:
+    return all(torch.equal(x, b.get(k)) for k, x in a.items(True, True))
+
+
+def test_periodic_hard_update_copies_every_p_updates():
+    p = 5
+    net = _net()
+    loss = qq.QuadraticQLoss(net)
+    updater = qq.PeriodicHardUpdate(loss, period=p)
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    g = _gen(12)
+    tgt, online = loss.target_value_network_params, loss.value_network_params
+    initial = tgt.detach().clone()
+    for i in range(1, 2 * p + 1):
+        opt.zero_grad()
+        loss(_batch(32, g))["loss_value"].backward()
+        opt.step()
+        updater.step()
+        if i % p == 0:
+            assert _same(tgt, online), f"no copy after update {i}"
+        elif i < p:
+            assert _same(tgt, initial), f"copied too early, update {i}"
+        else:
+            assert not _same(tgt, online), f"copied too early, update {i}"
+
+
+def test_fast_updater_copies_target_every_p_updates():
+    p, k = 6, 2
+    loss = qq.QuadraticQLoss(_net())
+    rep = _filled_replay(200, _gen(13))
+    fast = qq.FastQuadQUpdater(
+        loss, rep, generator=_gen(14), updates_per_call=k, target_update_period=p, lr=1e-2
+    )
+    tgt = loss.target_value_network_params
+    initial = tgt.detach().clone()
+    for _ in range(p // k - 1):
+        fast.step()
+        assert _same(tgt, initial)
+    fast.step()
+    assert fast.num_updates == p
+    assert _same(tgt, loss.value_network_params)
+    fast.step()
+    assert not _same(tgt, loss.value_network_params)
+    with pytest.raises(ValueError):
+        qq.FastQuadQUpdater(
+            loss, rep, generator=_gen(0), updates_per_call=4, target_update_period=6
+        )
+
+
+# --- fast path -------------------------------------------------------------------------------
+
+
+def _fast_vs_reference(k: int, compile: bool = False) -> None:
+    g = _gen(15)
+    rep = _filled_replay(500, g)
+    rows = rep.sample((k, 32), g)
+    pair = []
+    for _ in range(2):
+        loss = qq.QuadraticQLoss(_net(hidden=64), gamma=0.95)
+        _perturb_target(loss, _gen(16))
+        pair.append(loss)
+    fast_loss, ref_loss = pair
+    fast = qq.FastQuadQUpdater(
+        fast_loss,
+        rep,
+        generator=_gen(17),
+        updates_per_call=k,
+        target_update_period=100 * k,
+        compile=compile,
+    )
+    opt = torch.optim.Adam(ref_loss.parameters(), lr=1e-3)
+    # same batch, same parameters: the fast loss equals the LossModule loss
+    first = rep.to_tensordict(rows[0])
+    lm = fast_loss(first.clone())["loss_value"].detach()
+    ref_values = []
+    for i in range(k):
+        out = ref_loss(rep.to_tensordict(rows[i]))
+        ref_values.append(out["loss_value"].detach())
+        opt.zero_grad()
+        out["loss_value"].backward()
+        opt.step()
+    fast_values = fast.step(rows)
+    torch.testing.assert_close(fast_values[0], lm, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(fast_values, torch.stack(ref_values), rtol=1e-5, atol=1e-6)
+    # the hand-written gradients + flat Adam track autograd + torch.optim.Adam
+    for (name, p_fast), p_ref in zip(
+        fast_loss.value_network.named_parameters(), ref_loss.parameters(), strict=True
+    ):
+        torch.testing.assert_close(p_fast, p_ref, rtol=1e-5, atol=1e-6, msg=name)
+    # the loss module (and the acting network) see the updated weights
+    torch.testing.assert_close(
+        fast_loss(first.clone())["loss_value"],
+        ref_loss(first.clone())["loss_value"],
+        rtol=1e-5,
+        atol=1e-6,
+    )
+
+
+def test_fast_path_matches_lossmodule_and_adam():
+    _fast_vs_reference(k=5)
+
+
+def test_fast_path_compiled_matches_lossmodule():
+    # k = 1 keeps the compile short (a few seconds on 2 cores); training uses k = 10
+    _fast_vs_reference(k=1, compile=True)
+
+
+def test_fast_updater_state_dict_roundtrip():
+    loss = qq.QuadraticQLoss(_net())
+    rep = _filled_replay(100, _gen(18))
+    fast = qq.FastQuadQUpdater(loss, rep, generator=_gen(19), updates_per_call=2)
+    fast.step()
+    state = fast.state_dict()
+    fast.step()
+    fast.load_state_dict(state)
+    assert fast.num_updates == 2
+    torch.testing.assert_close(fast.exp_avg, state["exp_avg"])
+
+
+def test_transition_replay_ring_and_layout():
+    rep = qq.TransitionReplay(5, OBS_DIM)
+    td = _batch(7, _gen(20))
+    rep.extend_tensordict(td[:3])
+    assert len(rep) == 3
+    rep.extend_tensordict(td[3:])
+    assert len(rep) == 5
+    back = rep.to_tensordict(rep.storage)
+    # rows 5, 6 overwrote slots 0, 1; slots 2..4 hold 2..4
+    order = torch.tensor([5, 6, 2, 3, 4])
+    for key in td.keys(True, True):
+        torch.testing.assert_close(back[key], td[key][order], msg=str(key))
+    idx = rep.sample_indices((3, 4), _gen(21))
+    assert idx.shape == (3, 4) and idx.max() < 5
+    torch.testing.assert_close(rep.sample_indices((3, 4), _gen(21)), idx)
+
+
+# --- exploration -----------------------------------------------------------------------------
+
+
+def test_exploration_schedule_bounds_and_determinism():
+    exp = qq.GaussianExploration(sigma_start=1.0, sigma_end=0.1, decay_steps=100)
+    assert exp.sigma(0) == pytest.approx(1.0)
+    assert exp.sigma(50) == pytest.approx(0.55)
+    assert exp.sigma(100) == pytest.approx(0.1) and exp.sigma(10_000) == pytest.approx(0.1)
+    greedy = torch.cat([torch.full((500, 1), LOW), torch.full((500, 1), HIGH)])
+    wide = qq.GaussianExploration(sigma_start=50.0, sigma_end=50.0)
+    a1 = wide(greedy, 0, _gen(22))
+    assert torch.all((a1 >= LOW) & (a1 <= HIGH))
+    assert (a1 == LOW).any() and (a1 == HIGH).any()
+    torch.testing.assert_close(wide(greedy, 0, _gen(22)), a1)
+    assert not torch.equal(wide(greedy, 0, _gen(23)), a1)
+    mid = torch.zeros(20000, 1)
+    noisy = exp(mid, 10_000, _gen(24))
+    assert abs(noisy.std().item() - 0.1) < 0.01

@@ -1,0 +1,113 @@
+"""The training recipe end to end at tiny budgets, checkpoints and resume."""
+
+import csv
+import json
+
+import pytest
+import torch
+
+from marlmerge.cli import main
+from marlmerge.train import TrainConfig, load_train_config, train
+
+TINY = dict(
+    name="tiny",
+    total_sim_steps=6_400,
+    num_worlds=8,
+    env_steps_per_batch=4,
+    learning_starts=256,
+    replay_capacity=5_000,
+    update_path="fast",
+    checkpoint_every_sim_steps=2_048,
+    eval_episodes=8,
+    eval_worlds=4,
+)
+
+
+def _rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.reader(fh))
+
+
+def test_tiny_run_writes_logs_plots_checkpoint_and_evaluation(tmp_path):
+    result = train(TrainConfig(**TINY), tmp_path, progress=False)
+    for name in (
+        "loss.csv",
+        "egos.csv",
+        "checkpoint.pt",
+        "policy.pt",
+        "evaluation.json",
+        "fig3_loss.png",
+        "fig4_total_reward.png",
+        "fig5_reward_terms.png",
+        "timing.json",
+        "config.json",
+    ):
+        assert (tmp_path / name).exists(), name
+    # one update per simulator step; the fast path runs them 10 at a time, so < 10 are left over
+    assert result.sim_steps >= 6_400 and 0 <= result.sim_steps - result.updates < 10
+    loss = _rows(tmp_path / "loss.csv")
+    assert loss[0] == ["update", "sim_step", "loss"]
+    updates = [int(r[0]) for r in loss[1:]]
+    assert updates and all(u % 5 == 0 for u in updates) and updates == sorted(updates)
+    egos = _rows(tmp_path / "egos.csv")
+    header = egos[0]
+    assert header[:6] == ["ego", "sim_step", "world", "outcome", "time_s", "total_reward"]
+    assert len(egos) - 1 == result.egos > 0
+    for r in egos[1:]:
+        terms = [float(x) for x in r[6:]]
+        assert float(r[5]) == pytest.approx(sum(terms), abs=1e-6)
+    ev = json.loads((tmp_path / "evaluation.json").read_text())
+    assert ev["episodes"] == 8
+    assert ev["success_rate"] + ev["collision_rate"] + ev["truncation_rate"] == pytest.approx(1)
+
+
+def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
+    cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
+    straight = train(cfg, tmp_path / "a", progress=False)
+    # killed after 5,120 steps; its last checkpoint is at 4,096 and its logs run past it
+    train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=5_120)
+    killed_rows = len(_rows(tmp_path / "b" / "egos.csv"))
+    saved = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    assert saved["sim_steps"] == 4_096 and saved["ego_rows"] < killed_rows - 1
+    resumed = train(cfg, tmp_path / "b", resume=True, progress=False)
+    assert resumed.sim_steps == straight.sim_steps and resumed.updates == straight.updates
+    assert _rows(tmp_path / "a" / "egos.csv") == _rows(tmp_path / "b" / "egos.csv")
+    assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
+    wa = torch.load(tmp_path / "a" / "policy.pt", weights_only=False)["net"]
+    wb = torch.load(tmp_path / "b" / "policy.pt", weights_only=False)["net"]
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def test_torchrl_update_path_runs(tmp_path):
+    cfg = TrainConfig(
+        **{**TINY, "update_path": "torchrl", "total_sim_steps": 2_048, "eval_episodes": 4}
+    )
+    result = train(cfg, tmp_path, progress=False)
+    assert result.updates == result.sim_steps
+    assert len(_rows(tmp_path / "loss.csv")) > 1
+
+
+def test_presets_load_strictly(tmp_path):
+    assert load_train_config("paper").total_sim_steps == 1_600_000
+    assert load_train_config("quick").total_sim_steps < 1_600_000
+    bad = tmp_path / "bad.toml"
+    bad.write_text("total_steps = 5\n")
+    with pytest.raises(ValueError, match="'total_steps'"):
+        load_train_config(bad)
+    with pytest.raises(ValueError, match="update_path"):
+        TrainConfig(update_path="jit")
+
+
+def test_cli_train_refuses_to_overwrite_and_resumes(tmp_path, capsys):
+    out = tmp_path / "run"
+    sets = [
+        f"--set={k}={v!r}" if isinstance(v, str) else f"--set={k}={v}"
+        for k, v in {**TINY, "eval_episodes": 4}.items()
+    ]
+    sets = [s.replace("'", '"') for s in sets]
+    assert main(["train", "--out", str(out), "--no-progress", *sets]) == 0
+    assert "greedy evaluation on 4 held-out episodes" in capsys.readouterr().out
+    assert main(["train", "--out", str(out), "--no-progress", *sets]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main(["evaluate", str(out), "--episodes", "4", "--worlds", "4"]) == 0
+    assert main(["plot", str(out)]) == 0
