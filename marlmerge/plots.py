@@ -48,6 +48,19 @@ def _read(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def _raw_and_average(
+    ax, x: np.ndarray, y: np.ndarray, window: int, label: str | None, unit: str
+) -> None:
+    """Raw points faint, their trailing moving average bold."""
+    ax.plot(x, y, lw=0.3, alpha=0.35, color="tab:blue", label=label)
+    ax.plot(
+        x,
+        moving_average(y, window),
+        color="tab:red",
+        label=f"moving average ({window} {unit})" if label else None,
+    )
+
+
 def plot_run(run_dir: str | Path) -> list[Path]:
     """Write the three figures into `run_dir`; returns their paths."""
     import matplotlib
@@ -56,66 +69,46 @@ def plot_run(run_dir: str | Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     run = Path(run_dir)
-    written = []
     loss = _read(run / "loss.csv") if (run / "loss.csv").exists() else {}
     egos = _read(run / "egos.csv") if (run / "egos.csv").exists() else {}
+    ego_window = max(10, egos["total_reward"].size // 50) if egos else 10
+    written = []
+
+    def save(fig, name: str) -> None:
+        fig.tight_layout()
+        written.append(run / name)
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(8, 4))
     if loss:
-        ax.plot(loss["update"], loss["loss"], lw=0.3, alpha=0.35, color="tab:blue", label="loss")
-        window = max(10, loss["loss"].size // 100)
-        ax.plot(
-            loss["update"],
-            moving_average(loss["loss"], window),
-            color="tab:red",
-            label=f"moving average ({window} points)",
+        _raw_and_average(
+            ax, loss["update"], loss["loss"], max(10, loss["loss"].size // 100), "loss", "points"
         )
         ax.set_yscale("log")
         ax.legend()
-    ax.set_xlabel("gradient update")
-    ax.set_ylabel("TD loss")
-    ax.set_title("Fig. 3: training loss")
-    fig.tight_layout()
-    written.append(run / "fig3_loss.png")
-    fig.savefig(written[-1], dpi=120)
-    plt.close(fig)
+    ax.set(xlabel="gradient update", ylabel="TD loss", title="Fig. 3: training loss")
+    save(fig, "fig3_loss.png")
 
-    window = max(10, egos["total_reward"].size // 50) if egos else 10
     fig, ax = plt.subplots(figsize=(8, 4))
     if egos:
-        ax.plot(
-            egos["ego"],
-            egos["total_reward"],
-            lw=0.3,
-            alpha=0.35,
-            color="tab:blue",
-            label="single total reward",
-        )
-        ax.plot(
-            egos["ego"],
-            moving_average(egos["total_reward"], window),
-            color="tab:red",
-            label=f"moving average ({window} egos)",
+        _raw_and_average(
+            ax, egos["ego"], egos["total_reward"], ego_window, "single total reward", "egos"
         )
         ax.legend()
-    ax.set_xlabel("ramp vehicle (ego) index")
-    ax.set_ylabel("total reward")
-    ax.set_title("Fig. 4: single total reward of each ramp vehicle")
-    fig.tight_layout()
-    written.append(run / "fig4_total_reward.png")
-    fig.savefig(written[-1], dpi=120)
-    plt.close(fig)
+    ax.set(
+        xlabel="ramp vehicle (ego) index",
+        ylabel="total reward",
+        title="Fig. 4: single total reward of each ramp vehicle",
+    )
+    save(fig, "fig4_total_reward.png")
 
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
     for ax, (term, title) in zip(axes.ravel(), TERM_TITLES.items(), strict=True):
         if egos:
-            ax.plot(egos["ego"], egos[term], lw=0.3, alpha=0.35, color="tab:blue")
-            ax.plot(egos["ego"], moving_average(egos[term], window), color="tab:red")
+            _raw_and_average(ax, egos["ego"], egos[term], ego_window, None, "egos")
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("ego index")
     fig.suptitle("Fig. 5: reward components per ramp vehicle")
-    fig.tight_layout()
-    written.append(run / "fig5_reward_terms.png")
-    fig.savefig(written[-1], dpi=120)
-    plt.close(fig)
+    save(fig, "fig5_reward_terms.png")
     return written

@@ -27,6 +27,7 @@ All randomness comes from caller-supplied ``torch.Generator`` objects.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -716,6 +717,7 @@ class FastQuadQUpdater:
         self.target_flat = self._alias(loss.target_value_network_params)
         self.exp_avg = torch.zeros_like(self.flat)
         self.exp_avg_sq = torch.zeros_like(self.flat)
+        self._eager_chunk = functools.partial(_fast_chunk, self.spec)
         self._fn: Callable[..., Tensor] = self._eager_chunk
         self.compile_time_s: float | None = None
         if compile:
@@ -735,17 +737,6 @@ class FastQuadQUpdater:
         for t, view in zip(tensors, _unflatten(flat, s.obs_dim, s.hidden), strict=True):
             t.data = view
         return flat
-
-    def _eager_chunk(
-        self,
-        flat: Tensor,
-        target_flat: Tensor,
-        exp_avg: Tensor,
-        exp_avg_sq: Tensor,
-        adam_scalars: Tensor,
-        rows: Tensor,
-    ) -> Tensor:
-        return _fast_chunk(self.spec, flat, target_flat, exp_avg, exp_avg_sq, adam_scalars, rows)
 
     def _adam_scalars(self) -> Tensor:
         b1, b2 = self.betas
