@@ -19,6 +19,7 @@ Keys (all with leading dim B):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,8 @@ from marlmerge.core import (
     OUTCOME_NONE,
     OUTCOME_SUCCESS,
     OUTCOME_TRUNCATED,
+    EgoGaps,
+    StepEvents,
     TrafficCore,
 )
 from marlmerge.env import resolve_config
@@ -59,6 +62,8 @@ class BatchedMergeEnv(EnvBase):
         self.cfg = resolve_config(config, **(overrides or {}))
         self.num_worlds = num_worlds
         self.core = TrafficCore(self.cfg, batch_size=num_worlds, seed=seed)
+        self.recorder: Callable[[TrafficCore, StepEvents, EgoGaps], None] | None = None
+        """Called after every simulator step (evaluation records trajectories with it)."""
         b = num_worlds
         lo, hi = self.cfg.ego.accel_bounds_mps2
         self.observation_spec = Composite(
@@ -128,6 +133,8 @@ class BatchedMergeEnv(EnvBase):
                 break
             ev = core.step(action)
             g = core.ego_gaps()
+            if self.recorder is not None:
+                self.recorder(core, ev, g)
             trace[:, i] = (
                 st.v_mps[:, EGO],
                 st.x_m[:, EGO],

@@ -169,30 +169,42 @@ def _print_evaluation(ev: dict) -> None:
 
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
-    import torch
-
-    from marlmerge.config import ScenarioConfig, from_dict
     from marlmerge.env import resolve_config
-    from marlmerge.evaluate import evaluate_greedy
-    from marlmerge.learners.quadq import QuadraticQNet
+    from marlmerge.evaluate import evaluate_policy
+    from marlmerge.learners.baselines_rl import load_policy, load_scenario_of
 
-    path = Path(args.policy)
-    if path.is_dir():
-        path = path / "policy.pt"
-    if not path.exists():
-        raise ValueError(f"no saved policy at {path}")
-    saved = torch.load(path, weights_only=False)
-    scen = (
-        resolve_config(args.scenario)
-        if args.scenario
-        else from_dict(ScenarioConfig, saved["scenario"])
-    )
-    lo, hi = scen.ego.accel_bounds_mps2
-    net = QuadraticQNet(7, saved["config"]["hidden"], action_low=lo, action_high=hi)
-    net.load_state_dict(saved["net"])
-    ev = evaluate_greedy(net, scen, args.episodes, args.seed, args.worlds)
+    policy = load_policy(args.policy)
+    scen = resolve_config(args.scenario) if args.scenario else load_scenario_of(args.policy)
+    ev = evaluate_policy(policy, scen, args.episodes, args.seed, args.worlds)
     _print_evaluation(ev)
     print(json.dumps(ev))
+    return 0
+
+
+def grid_cmd(args: argparse.Namespace) -> int:
+    """Evaluate policies across traffic conditions: CSV, Markdown summary, heat maps."""
+    from marlmerge.grid import default_conditions, parse_policy, run_grid
+
+    policies = [parse_policy(p) for p in (args.policy or ["hold", "idm", "gap"])]
+    conditions = args.condition or default_conditions()
+    result = run_grid(
+        policies,
+        conditions,
+        args.episodes,
+        args.seed,
+        args.worlds,
+        args.out,
+        progress=not args.no_progress,
+    )
+    print(
+        f"{len(result.rows)} episodes in {result.wall_s:.0f} s "
+        f"({result.episodes_per_s:.1f} episodes/s)"
+    )
+    print((result.out_dir / "summary.md").read_text())
+    print(
+        f"wrote {result.out_dir}/episodes.csv, summary.md, heatmap_success.png, "
+        "heatmap_collision.png"
+    )
     return 0
 
 
@@ -236,6 +248,26 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
     e.add_argument("--scenario", default=None, help="evaluate on another scenario preset")
     e.set_defaults(func=evaluate_cmd)
+
+    g = sub.add_parser("grid", help="robustness grid: policies x traffic conditions")
+    g.add_argument(
+        "--policy",
+        action="append",
+        metavar="SPEC",
+        help="hold, idm, gap, or [label=]quadq:RUN_GLOB (repeatable; default: the three rules)",
+    )
+    g.add_argument(
+        "--condition",
+        action="append",
+        metavar="PRESET",
+        help="scenario preset (repeatable; default: every envs/grid_*.toml)",
+    )
+    g.add_argument("--episodes", type=int, default=30, help="episodes per condition")
+    g.add_argument("--seed", type=int, default=2_000_000, help="first evaluation seed")
+    g.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
+    g.add_argument("--out", default="runs/grid")
+    g.add_argument("--no-progress", action="store_true")
+    g.set_defaults(func=grid_cmd)
 
     pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
     pl.add_argument("run", help="run folder")

@@ -10,6 +10,11 @@ target update: the same loss, slower.
 The paper's schedule (Table 1): one gradient update per simulator step, so `action_repeat` (k)
 updates per stored transition; target copied every p updates. With B worlds, each env step stores B
 transitions and owes B * k updates.
+
+`algorithm` picks the learner: "quadq" (the paper's, above) or one of the peers in
+`marlmerge.learners.baselines_rl` ("dqn" over discrete acceleration levels, "td3"), trained by the
+same loop, replay, schedule, logs, checkpoints and evaluation; their gradient steps are torchrl
+losses with torch optimisers, compiled when `update_path = "compiled"`.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import from_dict, to_dict, tomllib
 from marlmerge.core import OUTCOME_NAMES, TrafficState
+from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy, make_learner
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
     GaussianExploration,
@@ -98,9 +104,37 @@ class TrainConfig:
     """... on roads seeded from here on (training seeds are small numbers)."""
     eval_worlds: int = 50
     """Episodes evaluated in parallel (one seed per group of this many)."""
+    algorithm: str = "quadq"
+    """Learner: "quadq" (the paper's quadratic Q), "dqn" (discrete levels) or "td3". The peers
+    use `hidden`, `gamma`, `lr`, `batch_size`, the schedule and the exploration decay above;
+    "compiled" `update_path` compiles their gradient steps, any other runs them eagerly."""
+    mlp_hidden_layers: int = 2
+    """dqn/td3: hidden ReLU layers of width `hidden` in each MLP (Q-network, actor, critics)."""
+    dqn_levels: int = 7
+    """dqn: acceleration levels evenly spaced over the ego bounds, both ends included."""
+    dqn_double: bool = False
+    """dqn: double DQN target (online argmax, target value). The target is a hard copy every
+    `target_update_period` updates."""
+    epsilon_start: float = 1.0
+    """dqn: epsilon-greedy exploration, epsilon falling linearly from this ..."""
+    epsilon_end: float = 0.05
+    """... to this over `sigma_decay_fraction` of `total_sim_steps`, then constant."""
+    td3_tau: float = 0.005
+    """td3: Polyak factor of the target networks (updated with each actor step). TD3's
+    exploration is the Gaussian noise of `sigma_start`/`sigma_end`, m/s^2."""
+    td3_policy_delay: int = 2
+    """td3: critic updates per actor update."""
+    td3_target_noise: float = 0.7
+    """td3: std of the target-policy smoothing noise, m/s^2 (TD3's 0.2 x half-range 3.5) ..."""
+    td3_target_noise_clip: float = 1.75
+    """... clipped to +- this, m/s^2 (TD3's 0.5 x 3.5)."""
 
     def __post_init__(self) -> None:
         checks = [
+            (
+                self.algorithm in ALGORITHMS,
+                f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
+            ),
             (
                 self.update_path in UPDATE_PATHS,
                 f"update_path must be one of {UPDATE_PATHS}, got {self.update_path!r}",
@@ -114,6 +148,25 @@ class TrainConfig:
             ),
             (0.0 < self.gamma < 1.0, f"gamma must lie in (0, 1), got {self.gamma}"),
             (self.eval_episodes >= 0, f"eval_episodes must be >= 0, got {self.eval_episodes}"),
+            (
+                self.updates_per_sim_step >= 0,
+                f"updates_per_sim_step must be >= 0, got {self.updates_per_sim_step}",
+            ),
+            (
+                self.mlp_hidden_layers >= 1,
+                f"mlp_hidden_layers must be >= 1, got {self.mlp_hidden_layers}",
+            ),
+            (self.dqn_levels >= 2, f"dqn_levels must be >= 2, got {self.dqn_levels}"),
+            (
+                0.0 <= self.epsilon_end <= 1.0 and 0.0 <= self.epsilon_start <= 1.0,
+                f"epsilon_start and epsilon_end must lie in [0, 1], got {self.epsilon_start}, "
+                f"{self.epsilon_end}",
+            ),
+            (0.0 < self.td3_tau <= 1.0, f"td3_tau must lie in (0, 1], got {self.td3_tau}"),
+            (
+                self.td3_policy_delay >= 1,
+                f"td3_policy_delay must be >= 1, got {self.td3_policy_delay}",
+            ),
         ]
         for ok, msg in checks:
             if not ok:
@@ -324,27 +377,34 @@ def train(
     scen = env.cfg
     k = scen.sim.action_repeat
     lo, hi = scen.ego.accel_bounds_mps2
-    init_gen = torch.Generator().manual_seed(cfg.seed)
-    net = QuadraticQNet(7, cfg.hidden, action_low=lo, action_high=hi, generator=init_gen)
-    loss_module = QuadraticQLoss(net, gamma=cfg.gamma)
     noise_gen = torch.Generator().manual_seed(cfg.seed + 1)
     sample_gen = torch.Generator().manual_seed(cfg.seed + 2)
-    exploration = GaussianExploration(
-        cfg.sigma_start,
-        cfg.sigma_end,
-        max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1),
-        lo,
-        hi,
-    )
-    policy = NoisyGreedyPolicy(net, exploration, noise_gen)
+    learner = None  # the peer learner (dqn, td3); None for quadq
+    if cfg.algorithm == "quadq":
+        init_gen = torch.Generator().manual_seed(cfg.seed)
+        net = QuadraticQNet(7, cfg.hidden, action_low=lo, action_high=hi, generator=init_gen)
+        loss_module = QuadraticQLoss(net, gamma=cfg.gamma)
+        exploration = GaussianExploration(
+            cfg.sigma_start,
+            cfg.sigma_end,
+            max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1),
+            lo,
+            hi,
+        )
+        policy = NoisyGreedyPolicy(net, exploration, noise_gen)
+    else:  # networks seeded from cfg.seed, target smoothing (td3) from cfg.seed + 3
+        learner = make_learner(cfg, lo, hi)
+        policy = LearnerPolicy(learner, noise_gen)
 
     # ---- replay: torchrl buffer of packed transitions [obs | action | reward | term | next_obs]
     replay = ReplayBuffer(storage=LazyTensorStorage(cfg.replay_capacity), generator=sample_gen)
 
     # ---- update path (weights restored first: the fast path aliases them into flat buffers)
-    if ckpt is not None:
+    if ckpt is not None and learner is None:
         loss_module.load_state_dict(ckpt["loss"])
-    if cfg.update_path == "torchrl":
+    if learner is not None:
+        fast = None  # the learner owns its loss, optimiser(s) and target updater
+    elif cfg.update_path == "torchrl":
         optimizer = torch.optim.Adam(loss_module.parameters(), lr=cfg.lr)
         target_updater = PeriodicHardUpdate(loss_module, period=cfg.target_update_period)
         fast = None
@@ -362,7 +422,9 @@ def train(
 
     sim_steps = updates = 0
     if ckpt is not None:
-        if fast is not None:
+        if learner is not None:
+            learner.load_state_dict(ckpt["learner"])
+        elif fast is not None:
             fast.load_state_dict(ckpt["optimizer"])
         else:
             optimizer.load_state_dict(ckpt["optimizer"])
@@ -404,6 +466,16 @@ def train(
     t_collect = time.perf_counter()
     recent: list[dict] = []
 
+    def learner_state() -> dict[str, Any]:
+        """Weights with targets, optimiser(s), target-updater progress (and learner RNG)."""
+        if learner is not None:
+            return {"learner": learner.state_dict()}
+        return {
+            "loss": loss_module.state_dict(),
+            "optimizer": fast.state_dict() if fast is not None else optimizer.state_dict(),
+            "target_updater": None if fast is not None else target_updater.state_dict(),
+        }
+
     def checkpoint() -> None:
         loss_log.flush()
         ego_log.flush()
@@ -411,9 +483,8 @@ def train(
             ckpt_path,
             {
                 "config": to_dict(cfg),
-                "loss": loss_module.state_dict(),
-                "optimizer": fast.state_dict() if fast is not None else optimizer.state_dict(),
-                "target_updater": None if fast is not None else target_updater.state_dict(),
+                "algorithm": cfg.algorithm,
+                **learner_state(),
                 "replay": replay.state_dict(),
                 "noise_gen": noise_gen.get_state(),
                 "sample_gen": sample_gen.get_state(),
@@ -436,7 +507,7 @@ def train(
         rows = torch.cat(
             [
                 flat.get("observation"),
-                flat.get("action"),
+                flat.get("action") if learner is None else learner.replay_action(flat),
                 nxt.get("reward"),
                 nxt.get("terminated").float(),
                 nxt.get("observation"),
@@ -453,6 +524,14 @@ def train(
         owed = int(sim_steps * cfg.updates_per_sim_step) - updates
         if len(replay) < cfg.learning_starts:
             updates += owed  # skipped: too little data to learn from yet
+        elif learner is not None:
+            if owed > 0:  # all minibatches of this batch in one sampling call
+                mbs = replay.sample(owed * cfg.batch_size).view(owed, cfg.batch_size, -1)
+                for j in range(owed):
+                    loss = learner.update(mbs[j])
+                    updates += 1
+                    if updates % cfg.loss_log_every == 0:
+                        loss_log.write([updates, sim_steps, float(loss)])
         elif fast is not None:
             n_calls = owed // fast.k
             for _ in range(n_calls):
@@ -472,7 +551,7 @@ def train(
                 target_updater.step()
                 updates += 1
                 if updates % cfg.loss_log_every == 0:
-                    loss_log.write([updates, sim_steps, float(out_td["loss_value"])])
+                    loss_log.write([updates, sim_steps, out_td["loss_value"].item()])
         update_s += time.perf_counter() - t_upd
 
         if bar is not None:
@@ -506,15 +585,23 @@ def train(
 
     evaluation = None
     if finished:
-        torch.save(
-            {"config": to_dict(cfg), "scenario": to_dict(scen), "net": net.state_dict()},
-            out / "policy.pt",
-        )
+        # policy.pt: everything `baselines_rl.load_policy` needs to rebuild the greedy policy
+        saved_policy = {
+            "algorithm": cfg.algorithm,
+            "config": to_dict(cfg),
+            "scenario": to_dict(scen),
+        }
+        if learner is None:
+            saved_policy["net"] = net.state_dict()
+        else:
+            saved_policy.update(learner.policy_state())
+        torch.save(saved_policy, out / "policy.pt")
         if cfg.eval_episodes > 0:
-            from marlmerge.evaluate import evaluate_greedy
+            from marlmerge.evaluate import evaluate_policy
 
-            evaluation = evaluate_greedy(
-                net, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+            greedy = net.greedy if learner is None else learner.greedy
+            evaluation = evaluate_policy(
+                greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
             )
             (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1))
         from marlmerge.plots import plot_run
@@ -528,7 +615,9 @@ def train(
         wall,
         update_s,
         collect_s,
-        fast.compile_time_s if fast is not None else None,
+        fast.compile_time_s
+        if fast is not None
+        else (learner.compile_time_s if learner is not None else None),
         evaluation,
     )
     (out / "timing.json").write_text(

@@ -1,5 +1,14 @@
-"""Learners built on torchrl: the quadratic-in-action Q-function of Wang & Chan."""
+"""Learners built on torchrl: the quadratic-in-action Q-function of Wang & Chan, and its peers
+(DQN over discrete accelerations, TD3) in `baselines_rl`."""
 
+from marlmerge.learners.baselines_rl import (
+    ALGORITHMS,
+    DQNLearner,
+    TD3Learner,
+    dqn_action_levels,
+    load_policy,
+    make_learner,
+)
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
     FastQuadQUpdater,
@@ -20,4 +29,11 @@ __all__ = [
     "QuadraticQNet",
     "TransitionReplay",
     "noisy_greedy_action",
+    # peers of the quadratic-Q learner (baselines_rl)
+    "ALGORITHMS",
+    "DQNLearner",
+    "TD3Learner",
+    "dqn_action_levels",
+    "load_policy",
+    "make_learner",
 ]
