@@ -15,63 +15,11 @@ import torch
 
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import (
-    EGO,
-    OUTCOME_COLLISION,
-    OUTCOME_SUCCESS,
-    OUTCOME_TRUNCATED,
-    EgoGaps,
-    StepEvents,
-    TrafficCore,
-)
+from marlmerge.core import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.metrics import EpisodeTrajectory, TrajectoryRecorder
 
 EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
 """observation [B, 7] -> acceleration [B, 1] (m/s^2)."""
-
-TRACE_FIELDS = (
-    "x_m",
-    "v_mps",
-    "a_mps2",
-    "d_front_m",
-    "v_front_mps",
-    "d_back_m",
-    "v_back_mps",
-    "a_back_mps2",
-    "outcome",
-)
-
-
-class TrajectoryRecorder:
-    """Records the ego and its gap vehicles of every world at every simulator step.
-
-    Attach as `env.recorder`; `columns()` gives [T, B] arrays. A missing gap vehicle has an
-    infinite gap and NaN speed and acceleration.
-    """
-
-    def __init__(self) -> None:
-        self.rows: list[tuple[np.ndarray, ...]] = []
-
-    def __call__(self, core: TrafficCore, ev: StepEvents, g: EgoGaps) -> None:
-        st = core.state
-        b = np.arange(core.batch_size)
-        has_f, has_b = g.front >= 0, g.back >= 0
-        back = np.maximum(g.back, 0)
-        self.rows.append(
-            (
-                st.x_m[:, EGO].copy(),
-                st.v_mps[:, EGO].copy(),
-                st.a_mps2[:, EGO].copy(),
-                np.where(has_f, g.d_front_m, np.inf),
-                np.where(has_f, g.v_front_mps, np.nan),
-                np.where(has_b, g.d_back_m, np.inf),
-                np.where(has_b, g.v_back_mps, np.nan),
-                np.where(has_b, st.a_mps2[b, back], np.nan),
-                ev.ego_outcome.copy(),
-            )
-        )
-
-    def columns(self) -> dict[str, np.ndarray]:
-        return {name: np.stack([r[i] for r in self.rows]) for i, name in enumerate(TRACE_FIELDS)}
 
 
 @torch.no_grad()
@@ -86,7 +34,7 @@ def rollout_first_egos(
     """Run the first ego of `episodes` fresh worlds to its end.
 
     Returns per-episode records (outcome code, time_s, total reward, mean |accel|) and, with
-    `record`, each episode's simulator-step trace (`TRACE_FIELDS`, arrays [T]) up to its end.
+    `record`, each episode's `EpisodeTrajectory` (simulator-step samples up to its end).
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
@@ -94,14 +42,18 @@ def rollout_first_egos(
         "reward": [],
         "mean_abs_accel": [],
     }
-    traces: list[dict[str, np.ndarray]] = []
+    traces: list[EpisodeTrajectory] = []
     lo, hi = scenario.ego.accel_bounds_mps2
     for g in range(-(-episodes // worlds)):
         nw = min(worlds, episodes - g * worlds)
         env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seed + g)
-        recorder = TrajectoryRecorder() if record else None
-        env.recorder = recorder
         td = env.reset()
+        recorded: list[tuple[int, EpisodeTrajectory]] = []  # (world, episode)
+        if record:
+            recorder = TrajectoryRecorder(env.core)
+            env.recorder = lambda core, ev, gaps, rec=recorder, out=recorded: out.extend(
+                rec.record(ev.ego_outcome)
+            )
         outcome = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
         while (outcome == 0).any():
@@ -121,11 +73,7 @@ def rollout_first_egos(
         rec["time_s"].append(time_s)
         rec["reward"].append(reward)
         rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
-        if recorder is not None:
-            cols = recorder.columns()
-            end = np.argmax(cols["outcome"] != 0, axis=0)  # [B] step of the first outcome
-            for w in range(nw):
-                traces.append({k: v[: end[w] + 1, w] for k, v in cols.items()})
+        traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
 
 

@@ -1,0 +1,287 @@
+"""The robustness grid: every policy on every traffic condition, on the same held-out episodes.
+
+    marlmerge grid --policy hold --policy idm --policy gap --policy "quadq:runs/paper_s*" \
+        --episodes 30 --out runs/grid
+
+Conditions are scenario presets (default: every `envs/grid_*.toml`: three flows x four driver
+mixes). In each condition every policy meets the same episodes: the first ramp vehicle of
+`episodes` freshly seeded worlds (seed `seed + 1000 * condition index`, in groups of `worlds`
+run in parallel). A learned policy is evaluated once per training run (one run folder per training
+seed) and its episodes are pooled.
+
+Outputs in `out`: `episodes.csv` (one row per episode, every metric of `marlmerge.metrics`),
+`summary.md` (success / collision with 95 % intervals, comfort and safety tables) and heat maps
+`heatmap_success.png`, `heatmap_collision.png`.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.env import find_preset, resolve_config
+from marlmerge.evaluate import EgoPolicy, rollout_first_egos
+from marlmerge.metrics import aggregate, episode_metrics
+
+RULE_POLICIES = ("hold", "idm", "gap")
+LEARNED_KINDS = ("quadq", "dqn", "td3")
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """A policy of the grid: a rule, or a learned kind with one run folder per training seed."""
+
+    name: str
+    kind: str
+    runs: tuple[str, ...] = ()
+
+
+def parse_policy(spec: str) -> PolicySpec:
+    """`hold`, `idm`, `gap`, or `[label=]KIND:GLOB` with KIND quadq, dqn or td3 (GLOB matches run
+    folders with a `policy.pt`, one per training seed)."""
+    label, _, body = spec.rpartition("=")
+    kind, _, pattern = body.partition(":")
+    if kind in RULE_POLICIES and not pattern:
+        return PolicySpec(label or kind, kind)
+    if kind in LEARNED_KINDS and pattern:
+        found = [m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")]
+        runs = tuple(found) or (pattern,)
+        missing = [r for r in runs if not (r.endswith(".pt") or (Path(r) / "policy.pt").exists())]
+        if missing:
+            raise ValueError(f"policy {spec!r}: no policy.pt in {missing[0]!r}")
+        return PolicySpec(label or kind, kind, runs)
+    raise ValueError(
+        f"unknown policy {spec!r} (use one of {', '.join(RULE_POLICIES)}, or "
+        f"[label=]{'|'.join(LEARNED_KINDS)}:RUN_GLOB)"
+    )
+
+
+def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
+    """The obs [B, 7] -> action [B, 1] function of one policy (and one training run)."""
+    if spec.kind in LEARNED_KINDS:
+        from marlmerge.learners.baselines_rl import load_policy
+
+        return load_policy(run)
+    from marlmerge.baselines import GapAcceptancePolicy
+    from marlmerge.policies import IdmEgoPolicy, constant_speed_action
+
+    rule = {
+        "hold": constant_speed_action,
+        "idm": IdmEgoPolicy(scenario),
+        "gap": GapAcceptancePolicy(scenario),
+    }[spec.kind]
+    return lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)
+
+
+def condition_label(cfg: ScenarioConfig) -> str:
+    return cfg.name.removeprefix("grid_").replace("_", " ")
+
+
+def default_conditions() -> list[str]:
+    envs = find_preset("default").parent
+    return [str(p) for p in sorted(envs.glob("grid_*.toml"), key=_condition_order)]
+
+
+def _condition_order(p: Path) -> tuple[int, int, str]:
+    flows = ["light", "moderate", "dense"]
+    mixes = ["cooperative", "neutral", "adversarial", "mixed"]
+    parts = p.stem.removeprefix("grid_").split("_")
+    f = flows.index(parts[0]) if parts and parts[0] in flows else 99
+    m = mixes.index(parts[1]) if len(parts) > 1 and parts[1] in mixes else 99
+    return (f, m, p.stem)
+
+
+@dataclass
+class GridResult:
+    rows: list[dict]
+    episodes_per_s: float
+    wall_s: float
+    out_dir: Path
+
+
+def run_grid(
+    policies: Sequence[PolicySpec],
+    conditions: Sequence[str],
+    episodes: int = 30,
+    seed: int = 2_000_000,
+    worlds: int = 50,
+    out_dir: str | Path = "runs/grid",
+    progress: bool = True,
+) -> GridResult:
+    """Evaluate every policy on every condition; write the CSV, the summary and the heat maps."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scenarios = [resolve_config(c) for c in conditions]
+    jobs = [
+        (ci, p, run)
+        for ci in range(len(scenarios))
+        for p in policies
+        for run in (p.runs or (None,))
+    ]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs) * episodes, unit="ep", desc="grid", dynamic_ncols=True)
+    rows: list[dict] = []
+    t0 = time.perf_counter()
+    for ci, spec, run in jobs:
+        scen = scenarios[ci]
+        policy = make_policy(spec, run, scen)
+        _, traces = rollout_first_egos(
+            policy, scen, episodes, seed + 1000 * ci, worlds, record=True
+        )
+        for i, traj in enumerate(traces):
+            rows.append(
+                {
+                    "policy": spec.name,
+                    "run": run or "-",
+                    "condition": condition_label(scen),
+                    "flow_vph_per_lane": scen.traffic.flow_vph_per_lane,
+                    "episode": i,
+                    **episode_metrics(traj),
+                }
+            )
+        if bar is not None:
+            bar.update(episodes)
+    wall = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+    result = GridResult(rows, len(rows) / max(wall, 1e-9), wall, out)
+    write_csv(rows, out / "episodes.csv")
+    labels = [condition_label(s) for s in scenarios]
+    names = list(dict.fromkeys(p.name for p in policies))
+    (out / "summary.md").write_text(summary_markdown(rows, names, labels, result, episodes, seed))
+    plot_heatmaps(rows, names, labels, out)
+    return result
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _cell(rows: list[dict], policy: str, cond: str, metric: str) -> np.ndarray:
+    return np.array(
+        [r[metric] for r in rows if r["policy"] == policy and r["condition"] == cond],
+        dtype=np.float64,
+    )
+
+
+def _fmt_rate(values: np.ndarray) -> str:
+    m, lo, hi = aggregate(values, "rate")
+    return f"{100 * m:.0f} [{100 * lo:.0f}–{100 * hi:.0f}]"
+
+
+def _fmt_mean(values: np.ndarray, digits: int = 1) -> str:
+    m, lo, hi = aggregate(values, "mean")
+    if not np.isfinite(m):
+        return "–"
+    return f"{m:.{digits}f} ±{(hi - lo) / 2:.{digits}f}"
+
+
+def _table(rows: list[dict], policies: list[str], conds: list[str], cell) -> list[str]:
+    lines = ["| policy | " + " | ".join(conds) + " |", "|---" * (len(conds) + 1) + "|"]
+    for p in policies:
+        lines.append(f"| {p} | " + " | ".join(cell(p, c) for c in conds) + " |")
+    return lines
+
+
+def summary_markdown(
+    rows: list[dict],
+    policies: list[str],
+    conds: list[str],
+    result: GridResult,
+    episodes: int,
+    seed: int,
+) -> str:
+    n_runs = {p: len({r["run"] for r in rows if r["policy"] == p}) for p in policies}
+    out = [
+        "# Robustness grid",
+        "",
+        f"{episodes} episodes per condition (seeds from {seed}), the same for every policy; "
+        "learned policies pooled over their training runs "
+        f"({', '.join(f'{p}: {n}' for p, n in n_runs.items())}). "
+        f"{len(rows)} episodes in {result.wall_s:.0f} s ({result.episodes_per_s:.1f} episodes/s).",
+        "Rates in % with 95 % Wilson intervals; means with 95 % half-widths.",
+        "",
+        "## Success % / collision %",
+        "",
+        *_table(
+            rows,
+            policies,
+            conds,
+            lambda p, c: (
+                f"{_fmt_rate(_cell(rows, p, c, 'success'))} / "
+                f"{_fmt_rate(_cell(rows, p, c, 'collision'))}"
+            ),
+        ),
+        "",
+        "## Comfort: mean |acceleration| (m/s²) / max |jerk| (m/s³)",
+        "",
+        *_table(
+            rows,
+            policies,
+            conds,
+            lambda p, c: (
+                f"{_fmt_mean(_cell(rows, p, c, 'mean_abs_accel_mps2'), 2)} / "
+                f"{_fmt_mean(_cell(rows, p, c, 'max_abs_jerk_mps3'))}"
+            ),
+        ),
+        "",
+        "## Safety: time with TTC < 1.5 s (s) / min headway after merging (s) / "
+        "new follower's min acceleration (m/s²)",
+        "",
+        *_table(
+            rows,
+            policies,
+            conds,
+            lambda p, c: (
+                f"{_fmt_mean(_cell(rows, p, c, 'time_ttc_below_s'), 2)} / "
+                f"{_fmt_mean(_cell(rows, p, c, 'min_headway_after_merge_s'), 2)} / "
+                f"{_fmt_mean(_cell(rows, p, c, 'follower_min_accel_mps2'))}"
+            ),
+        ),
+        "",
+        "## Timeliness: time to merge (s)",
+        "",
+        *_table(
+            rows, policies, conds, lambda p, c: _fmt_mean(_cell(rows, p, c, "time_to_merge_s"))
+        ),
+        "",
+        "Every metric of every episode is in `episodes.csv`.",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def plot_heatmaps(rows: list[dict], policies: list[str], conds: list[str], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    for metric, cmap in (("success", "RdYlGn"), ("collision", "RdYlGn_r")):
+        grid = np.array([[np.mean(_cell(rows, p, c, metric)) for c in conds] for p in policies])
+        fig, ax = plt.subplots(figsize=(1.1 * len(conds) + 2.5, 0.6 * len(policies) + 2))
+        im = ax.imshow(100 * grid, cmap=cmap, vmin=0, vmax=100, aspect="auto")
+        ax.set_xticks(range(len(conds)), conds, rotation=40, ha="right")
+        ax.set_yticks(range(len(policies)), policies)
+        for i in range(len(policies)):
+            for j in range(len(conds)):
+                ax.text(j, i, f"{100 * grid[i, j]:.0f}", ha="center", va="center", fontsize=9)
+        fig.colorbar(im, ax=ax, label=f"{metric} rate (%)")
+        ax.set_title(f"{metric} rate by policy and traffic condition")
+        fig.tight_layout()
+        fig.savefig(out / f"heatmap_{metric}.png", dpi=120)
+        plt.close(fig)

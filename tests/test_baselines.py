@@ -1,0 +1,131 @@
+"""The gap-acceptance merger: safe in easy traffic, better than ignoring the merge, sane actions."""
+
+import numpy as np
+import pytest
+
+from marlmerge.baselines import GapAcceptancePolicy, IdmEgoPolicy
+from marlmerge.config import ScenarioConfig
+from marlmerge.core import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
+from marlmerge.observation import EGO_SCALE, ego_observation
+
+COOPERATIVE_LIGHT = {
+    "traffic.flow_vph_per_lane": 600.0,
+    "driver.mix_cooperative": 1.0,
+    "driver.mix_neutral": 0.0,
+    "driver.mix_adversarial": 0.0,
+}
+
+
+def first_ego_outcomes(policy, cfg: ScenarioConfig, batch_size: int, seed: int) -> np.ndarray:
+    """Outcome of the first ramp vehicle of each world of `TrafficCore(cfg, batch_size, seed)`,
+    the policy acting every `action_repeat` simulator steps. [batch_size] OUTCOME_* codes."""
+    core = TrafficCore(cfg, batch_size=batch_size, seed=seed)
+    out = np.zeros(batch_size, dtype=np.int64)
+    max_steps = int(cfg.ego.max_episode_s / cfg.sim.dt_s) + 1
+    steps = 0
+    while (out == OUTCOME_NONE).any() and steps < max_steps:
+        a = np.asarray(policy(ego_observation(core)))[:, 0]
+        for _ in range(cfg.sim.action_repeat):
+            ev = core.step(a)
+            steps += 1
+            new = (out == OUTCOME_NONE) & (ev.ego_outcome != OUTCOME_NONE)
+            out[new] = ev.ego_outcome[new]
+    return out
+
+
+def test_never_collides_in_cooperative_light_traffic_over_30_seeds():
+    # "30 seeds": 30 freshly seeded roads, TrafficCore(batch_size=1, seed=s) for s in 0..29, each
+    # in steady flow after the warm-up; the episode is the first ramp vehicle of each road.
+    cfg = ScenarioConfig().replace(**COOPERATIVE_LIGHT)
+    policy = GapAcceptancePolicy(cfg)
+    outcomes = np.array([first_ego_outcomes(policy, cfg, 1, seed)[0] for seed in range(30)])
+    assert not (outcomes == OUTCOME_COLLISION).any(), outcomes
+    assert (outcomes == OUTCOME_SUCCESS).all(), outcomes  # and it neither stalls nor times out
+
+
+def test_beats_the_merge_ignoring_idm_ego_in_default_traffic():
+    cfg = ScenarioConfig()
+    gap = first_ego_outcomes(GapAcceptancePolicy(cfg), cfg, batch_size=60, seed=7)
+    idm = first_ego_outcomes(IdmEgoPolicy(cfg), cfg, batch_size=60, seed=7)
+    assert np.mean(gap == OUTCOME_SUCCESS) >= np.mean(idm == OUTCOME_SUCCESS) + 0.05
+    assert np.mean(gap == OUTCOME_COLLISION) < np.mean(idm == OUTCOME_COLLISION)
+
+
+def test_actions_are_finite_and_inside_the_ego_bounds_for_random_observations():
+    cfg = ScenarioConfig()
+    policy = GapAcceptancePolicy(cfg)
+    lo, hi = cfg.ego.accel_bounds_mps2
+    rng = np.random.default_rng(0)
+    n = 4000
+    raw = np.stack(
+        [
+            rng.uniform(0.0, 45.0, n),  # ego speed
+            rng.uniform(-300.0, 250.0, n),  # ego position
+            rng.uniform(0.0, 45.0, n),  # front speed
+            rng.uniform(-300.0, 400.0, n),  # front position (also behind the ego)
+            rng.uniform(0.0, 45.0, n),  # back speed
+            rng.uniform(-450.0, 250.0, n),  # back position (also ahead of the ego)
+            rng.uniform(5.0, 40.0, n),  # speed limit
+        ],
+        axis=1,
+    )
+    raw[::7, 0] = 0.0  # standing egos
+    raw[::11, 1] = cfg.x_overlap_m  # exactly at the join point
+    raw[::13, 3] = raw[::13, 1]  # front vehicle level with the ego
+    obs = (raw / EGO_SCALE).astype(np.float32)
+    a = policy(obs)
+    assert a.shape == (n, 1)
+    assert np.all(np.isfinite(a))
+    assert np.all((a >= lo) & (a <= hi))
+    # any leading shape, and junk values are still answered inside the bounds
+    assert policy(obs[:20].reshape(4, 5, 7)).shape == (4, 5, 1)
+    assert policy(obs[0]).shape == (1,)
+    junk = obs[:3].copy()
+    junk[0, 2] = np.nan
+    junk[1, 3] = np.inf
+    junk[2, :] = -np.inf
+    out = policy(junk)
+    assert np.all(np.isfinite(out)) and np.all((out >= lo) & (out <= hi))
+
+
+def _obs(cfg, v, x, front=None, back=None):
+    """Scaled observation; front/back = (dx from the ego m, speed m/s) or None for none."""
+    v_lim = cfg.road.speed_limit_mps
+    rng_m = cfg.ego.sensing_range_m
+    dxf, vf = front if front is not None else (rng_m, v_lim)
+    dxb, vb = back if back is not None else (-rng_m, v_lim)
+    raw = np.array([v, x, vf, x + dxf, vb, x + dxb, v_lim])
+    return (raw / EGO_SCALE)[None].astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return ScenarioConfig()
+
+
+def test_accelerates_ahead_of_a_close_back_vehicle_when_that_fixes_the_lag_gap(cfg):
+    # 150 m before the join point, a back vehicle 15 m behind at the ego's speed
+    a = GapAcceptancePolicy(cfg)(_obs(cfg, 25.0, cfg.x_overlap_m - 150.0, back=(-15.0, 25.0)))
+    assert a[0, 0] > 0.0
+
+
+def test_drops_behind_a_vehicle_alongside_in_a_short_gap(cfg):
+    obs = _obs(cfg, 25.0, -150.0, front=(10.0, 25.0), back=(-1.0, 25.0))
+    assert GapAcceptancePolicy(cfg)(obs)[0, 0] < 0.0
+
+
+def test_waits_at_the_end_of_the_ramp_until_the_lag_gap_is_long_enough(cfg):
+    policy = GapAcceptancePolicy(cfg)
+    x = cfg.x_overlap_m - 0.3
+    assert policy(_obs(cfg, 0.0, x, back=(-25.0, 25.0)))[0, 0] <= 0.0
+    assert policy(_obs(cfg, 0.0, x, back=(-60.0, 25.0)))[0, 0] <= 0.0
+    assert policy(_obs(cfg, 0.0, x, back=(-100.0, 25.0)))[0, 0] > 0.0
+    assert policy(_obs(cfg, 0.0, x))[0, 0] > 0.0  # nobody around
+
+
+def test_free_road_speeds_up_to_the_limit_and_follows_by_idm_in_the_lane(cfg):
+    policy = GapAcceptancePolicy(cfg)
+    assert policy(_obs(cfg, 20.0, -200.0))[0, 0] > 0.0
+    assert policy(_obs(cfg, cfg.road.speed_limit_mps, -200.0))[0, 0] == pytest.approx(0.0)
+    in_lane = _obs(cfg, 20.0, -10.0, front=(30.0, 18.0), back=(-20.0, 22.0))
+    np.testing.assert_allclose(policy(in_lane), IdmEgoPolicy(cfg)(in_lane))
