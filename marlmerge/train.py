@@ -46,6 +46,7 @@ from marlmerge.learners.quadq import (
     PeriodicHardUpdate,
     QuadraticQLoss,
     QuadraticQNet,
+    unpack_rows,
 )
 from marlmerge.reward import EGO_TERMS
 
@@ -200,7 +201,7 @@ def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:
 
 
 class NoisyGreedyPolicy:
-    """Collector policy: `action = clip(B(s) + sigma(step) * N(0, 1))`; greedy if `noisy=False`."""
+    """Collector policy: `action = clip(B(s) + sigma(step) * N(0, 1))` (m/s^2)."""
 
     def __init__(
         self, net: QuadraticQNet, exploration: GaussianExploration, generator: torch.Generator
@@ -209,14 +210,11 @@ class NoisyGreedyPolicy:
         self.exploration = exploration
         self.generator = generator
         self.sim_step = 0
-        self.noisy = True
 
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         action = self.net.greedy(td.get("observation"))  # [B, 1]
-        if self.noisy:
-            action = self.exploration(action, self.sim_step, self.generator)
-        td.set("action", action)
+        td.set("action", self.exploration(action, self.sim_step, self.generator))
         return td
 
 
@@ -543,7 +541,7 @@ def train(
                 updates += fast.k
         else:
             for _ in range(owed):
-                td = _rows_to_td(replay.sample(cfg.batch_size), 7)
+                td = unpack_rows(replay.sample(cfg.batch_size), 7)
                 out_td = loss_module(td)
                 optimizer.zero_grad()
                 out_td["loss_value"].backward()
@@ -637,21 +635,6 @@ def train(
         )
     )
     return result
-
-
-def _rows_to_td(rows: torch.Tensor, d: int) -> TensorDictBase:
-    from tensordict import TensorDict
-
-    return TensorDict(
-        {
-            "observation": rows[:, :d],
-            "action": rows[:, d : d + 1],
-            ("next", "reward"): rows[:, d + 1 : d + 2],
-            ("next", "terminated"): rows[:, d + 2 : d + 3] > 0.5,
-            ("next", "observation"): rows[:, d + 3 :],
-        },
-        batch_size=rows.shape[:1],
-    )
 
 
 def _progress(total: int, initial: int, enabled: bool):

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import Tensor, nn
 from torchrl.data import Bounded, Categorical
 from torchrl.modules import MLP, Actor, QValueActor, ValueOperator
@@ -47,6 +47,7 @@ from marlmerge.learners.quadq import (
     GaussianExploration,
     PeriodicHardUpdate,
     QuadraticQNet,
+    unpack_rows,
 )
 
 __all__ = [
@@ -292,18 +293,10 @@ def _quiet_tracing() -> Iterator[None]:
 
 def _rows_to_td(rows: Tensor, d: int, action: Tensor) -> TensorDictBase:
     """Packed rows [M, 2d + 3] -> the tensordict the torchrl losses read (batch [M])."""
-    terminated = rows[:, d + 2 : d + 3] > 0.5
-    return TensorDict(
-        {
-            "observation": rows[:, :d],
-            "action": action,
-            ("next", "reward"): rows[:, d + 1 : d + 2],
-            ("next", "terminated"): terminated,
-            ("next", "done"): terminated,  # TD(0) reads only `terminated`; the key must exist
-            ("next", "observation"): rows[:, d + 3 :],
-        },
-        batch_size=rows.shape[:1],
-    )
+    td = unpack_rows(rows, d)
+    td.set("action", action)
+    td.set(("next", "done"), td.get(("next", "terminated")))  # the losses need the key to exist
+    return td
 
 
 class BaselineLearner:
@@ -678,19 +671,16 @@ def make_learner(cfg: Any, low: float, high: float) -> BaselineLearner:
 
 class LearnerPolicy:
     """Collector policy around a :class:`BaselineLearner`: writes ``action`` [B, 1] (m/s^2) and,
-    for DQN, ``action_index`` [B]; explores with ``generator`` unless ``noisy`` is False."""
+    for DQN, ``action_index`` [B]; explores with ``generator``."""
 
     def __init__(self, learner: BaselineLearner, generator: torch.Generator) -> None:
         self.learner = learner
         self.generator = generator
         self.sim_step = 0
-        self.noisy = True
 
     @torch.no_grad()
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        out = self.learner.act(
-            td.get("observation"), self.sim_step, self.generator if self.noisy else None
-        )
+        out = self.learner.act(td.get("observation"), self.sim_step, self.generator)
         for key, value in out.items():
             td.set(key, value)
         return td

@@ -49,6 +49,7 @@ __all__ = [
     "QuadraticQNet",
     "TransitionReplay",
     "noisy_greedy_action",
+    "unpack_rows",
 ]
 
 DEFAULT_ACTION_BOUNDS: tuple[float, float] = (-4.5, 2.5)
@@ -509,18 +510,26 @@ class TransitionReplay:
 
     def to_tensordict(self, rows: Tensor, keys: QuadraticQLoss._AcceptedKeys | None = None):
         """Packed rows [..., 2d + 3] -> TensorDict with the :class:`QuadraticQLoss` layout."""
-        k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
-        d = self.obs_dim
-        return TensorDict(
-            {
-                k.observation: rows[..., :d],
-                k.action: rows[..., d : d + 1],
-                ("next", k.reward): rows[..., d + 1 : d + 2],
-                ("next", k.terminated): rows[..., d + 2 : d + 3] > 0.5,
-                ("next", k.observation): rows[..., d + 3 :],
-            },
-            batch_size=rows.shape[:-1],
-        )
+        return unpack_rows(rows, self.obs_dim, keys)
+
+
+def unpack_rows(
+    rows: Tensor, obs_dim: int, keys: QuadraticQLoss._AcceptedKeys | None = None
+) -> TensorDict:
+    """Packed transitions ``[obs | action | reward | terminated | next_obs]`` [..., 2d + 3] ->
+    TensorDict with the :class:`QuadraticQLoss` layout (torchrl conventions)."""
+    k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
+    d = obs_dim
+    return TensorDict(
+        {
+            k.observation: rows[..., :d],
+            k.action: rows[..., d : d + 1],
+            ("next", k.reward): rows[..., d + 1 : d + 2],
+            ("next", k.terminated): rows[..., d + 2 : d + 3] > 0.5,
+            ("next", k.observation): rows[..., d + 3 :],
+        },
+        batch_size=rows.shape[:-1],
+    )
 
 
 @dataclass(frozen=True)
