@@ -5,6 +5,8 @@
   steps; episode resets included.
 - `core_vehicle_steps_per_s[B]`: the batched core at batch size B, ego random, finished egos
   replaced at once; counts active vehicles advanced per second of wall time.
+- `multi_agent_env_steps_per_s`: the torchrl `MultiAgentMergeEnv` (B = 32 worlds, the ego and the
+  4 highway agents of each acting, partial resets included), env steps summed over worlds.
 
     python benchmarks/bench_env.py [--seconds 5]
 """
@@ -70,6 +72,26 @@ def bench_core(batch_size: int, seconds: float, seed: int = 0) -> dict[str, floa
     }
 
 
+def bench_multi_agent(seconds: float, worlds: int = 32, seed: int = 0) -> dict[str, float]:
+    import torch
+
+    from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
+
+    env = MultiAgentMergeEnv(num_worlds=worlds, seed=seed)
+    env.set_opponent_mix(1, 0.0)
+    gen = torch.Generator().manual_seed(seed)
+    td = env.reset()
+    steps = 0
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        td.set("action", torch.rand(worlds, 1, generator=gen) * 7.0 - 4.5)
+        td.set((GROUP, "action"), torch.rand(worlds, 4, 1, generator=gen) * 2.0 - 1.0)
+        _, td = env.step_and_maybe_reset(td)
+        steps += 1
+    wall = time.perf_counter() - t0
+    return {"env_steps_per_s": steps * worlds / wall}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--seconds", type=float, default=5.0, help="wall time per measurement")
@@ -82,6 +104,7 @@ def main() -> None:
             "env_steps_per_s"
         ],
         "core": {str(b): bench_core(b, args.seconds) for b in (1, 64, 1024)},
+        "multi_agent_env_steps_per_s": bench_multi_agent(args.seconds)["env_steps_per_s"],
     }
     print(json.dumps(result, indent=2))
 

@@ -117,6 +117,20 @@ class BatchedMergeEnv(EnvBase):
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise ValueError(f"action of world {i} must be finite, got {action[i]}")
+        summed, outcome = self._simulate(action)
+        return self._output(summed, outcome)
+
+    def _simulate(
+        self,
+        action: np.ndarray,
+        highway_cmd: np.ndarray | None = None,
+        after_step: Callable[[StepEvents, EgoGaps, np.ndarray], None] | None = None,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Hold the ego accelerations `action` [B] (and the mainline commands `highway_cmd`
+        [B, N], NaN = scripted) for `action_repeat` simulator steps. Returns the ego's reward
+        terms summed over the steps its episode still ran ([B] each) and its outcome [B].
+        `after_step(events, gaps, live)` runs after every simulator step; `live` [B] marks the
+        worlds whose ego was still running before that step."""
         lo, hi = self.cfg.ego.accel_bounds_mps2
         action = np.clip(action, lo, hi)
         core, cfg = self.core, self.cfg
@@ -131,10 +145,12 @@ class BatchedMergeEnv(EnvBase):
             live = outcome == OUTCOME_NONE
             if not live.any():
                 break
-            ev = core.step(action)
+            ev = core.step(action, highway_cmd)
             g = core.ego_gaps()
             if self.recorder is not None:
                 self.recorder(core, ev, g)
+            if after_step is not None:
+                after_step(ev, g, live)
             trace[:, i] = (
                 st.v_mps[:, EGO],
                 st.x_m[:, EGO],
@@ -158,7 +174,7 @@ class BatchedMergeEnv(EnvBase):
             core.v_limit,
         )
         summed = {t: (terms[t] * counts).sum(axis=0) for t in EGO_TERMS}
-        return self._output(summed, outcome)
+        return summed, outcome
 
     def _output(self, terms: dict[str, np.ndarray], outcome: np.ndarray) -> TensorDictBase:
         b = self.num_worlds

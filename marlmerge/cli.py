@@ -1,4 +1,6 @@
-"""Command line: `marlmerge train | evaluate | plot | simulate`. `marlmerge --help` lists them."""
+"""Command line: `marlmerge train | cotrain | evaluate | grid | plot | simulate`.
+
+`marlmerge --help` lists them."""
 
 from __future__ import annotations
 
@@ -158,6 +160,35 @@ def train_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def cotrain_cmd(args: argparse.Namespace) -> int:
+    """Co-train learned highway agents and the ego (alternating phases)."""
+    from marlmerge.cotrain import cotrain, load_cotrain_config
+
+    cfg = load_cotrain_config(args.preset, **_parse_sets(args.set))
+    out = Path(args.out or f"runs/{cfg.name}")
+    if (out / "checkpoint.pt").exists() and not args.resume:
+        raise ValueError(
+            f"{out} already holds a run: pass --resume to continue it, or --out to "
+            "start a new one elsewhere"
+        )
+    phases = ", ".join(f"{kind} {n:,}" for kind, n in cfg.phases())
+    print(
+        f"co-training {cfg.name!r} ({cfg.profile} highway agents) on scenario "
+        f"{cfg.scenario!r}, seed {cfg.seed}, writing {out}; phases (simulator steps): {phases}",
+        flush=True,
+    )
+    result = cotrain(cfg, out, resume=args.resume, progress=not args.no_progress)
+    print(
+        f"done: {result.sim_steps:,} simulator steps, {result.egos:,} ramp vehicles, "
+        f"{result.pool_size} highway snapshots in the pool, {result.wall_s:.0f} s"
+    )
+    for name, ev in (result.evaluation or {}).items():
+        print(f"final ego vs {name.replace('_', ' ')} traffic:")
+        _print_evaluation(ev)
+    print(f"logs, checkpoint and policies in {out}")
+    return 0
+
+
 def _print_evaluation(ev: dict) -> None:
     print(
         f"greedy evaluation on {ev['episodes']} held-out episodes: "
@@ -175,7 +206,12 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
 
     policy = load_policy(args.policy)
     scen = resolve_config(args.scenario) if args.scenario else load_scenario_of(args.policy)
-    ev = evaluate_policy(policy, scen, args.episodes, args.seed, args.worlds)
+    highway = None
+    if args.highway:
+        from marlmerge.cotrain import load_highway_policy
+
+        highway = load_highway_policy(args.highway)
+    ev = evaluate_policy(policy, scen, args.episodes, args.seed, args.worlds, highway)
     _print_evaluation(ev)
     print(json.dumps(ev))
     return 0
@@ -247,20 +283,41 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=1_000_000, help="first held-out road seed")
     e.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
     e.add_argument("--scenario", default=None, help="evaluate on another scenario preset")
+    e.add_argument(
+        "--highway",
+        default=None,
+        help="a saved highway policy (run folder or highway_policy.pt) driving the highway agents",
+    )
     e.set_defaults(func=evaluate_cmd)
+
+    c = sub.add_parser("cotrain", help="co-train learned highway agents and the ego")
+    c.add_argument("preset", help="co-training preset in trainers/ (e.g. cotrain) or a .toml path")
+    c.add_argument("--out", default=None, help="run folder (default runs/<name>)")
+    c.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    c.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a CoTrainConfig field, e.g. --set seed=1 (repeatable)",
+    )
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    c.set_defaults(func=cotrain_cmd)
 
     g = sub.add_parser("grid", help="robustness grid: policies x traffic conditions")
     g.add_argument(
         "--policy",
         action="append",
         metavar="SPEC",
-        help="hold, idm, gap, or [label=]quadq:RUN_GLOB (repeatable; default: the three rules)",
+        help="hold, idm, gap, or [label=]quadq|dqn|td3:RUN_GLOB (repeatable; default: the "
+        "three rules)",
     )
     g.add_argument(
         "--condition",
         action="append",
-        metavar="PRESET",
-        help="scenario preset (repeatable; default: every envs/grid_*.toml)",
+        metavar="SPEC",
+        help="scenario preset, or [label=]PRESET+highway:RUN_GLOB for learned highway agents "
+        "(repeatable; default: every envs/grid_*.toml)",
     )
     g.add_argument("--episodes", type=int, default=30, help="episodes per condition")
     g.add_argument("--seed", type=int, default=2_000_000, help="first evaluation seed")

@@ -206,6 +206,50 @@ class RewardConfig:
     """The distance terms are zero while the ego is upstream of this position (far away)."""
     collision_penalty: float = 20.0
     """One-off penalty on collision; 0 gives the paper's reward exactly."""
+    w_highway_speed: float = 1.0
+    """Mainline drivers' speed term, per step: -w_highway_speed * ((v_limit - v) / v_limit below
+    the limit, (v - v_limit) / speed_over_scale_mps above it). A mainline driver wants to drive
+    at the limit (no dead band as the ramp vehicle has): a learned one that stops to block the
+    merge, or races at 40 m/s to deny a gap, pays for every second of it."""
+
+
+@dataclass(frozen=True)
+class InteractionConfig:
+    """The interaction term of a learned highway agent's reward (`marlmerge.reward`).
+
+    A learned mainline driver keeps its own driving reward (comfort, safety to its leader, speed,
+    collisions it is to blame for) and gets `sign * term` for ego failures it contributed to:
+
+    `ego_collision`:  +w_ego_collision once, when the ego collides with this vehicle and the ego is
+                      to blame (it ran into this vehicle, or cut in front of it less than
+                      `cut_in_grace_s` before being hit).
+    `ego_hard_brake`: +w_ego_hard_brake_per_s per second the ego brakes harder than
+                      `hard_brake_mps2` with this vehicle as its gap-front vehicle.
+    `ego_stall`:      +w_ego_stall once, when the ego is truncated (stalled or out of time) with
+                      this vehicle as its gap-front or gap-back vehicle.
+    `ego_unsafe_gap`: +w_ego_unsafe_gap_per_s * g per second this vehicle is the ego's gap-front or
+                      gap-back vehicle at a gap below the safe distance, g = the closeness of the
+                      ego's own gap terms (0 at the safe distance, 1 touching; merge area only):
+                      the near-failure that precedes a collision, so learning has a signal before
+                      the first collisions are found. It is what "closing the gap" earns.
+
+    sign = +1 makes an adversary, -1 a cooperative driver (the same terms as penalties).
+
+    Its own `collision` term is -own_collision_penalty for every collision it is involved in,
+    except one the ego is to blame for; a collision with the ego that this vehicle is to blame
+    for (it rear-ended an ego that had been in the lane for at least `cut_in_grace_s`) is its own.
+    The penalty is set far above what any ego failure earns, so that a learned adversary presses
+    the ego but does not trade its own car for it (a realistic adversary, not a kamikaze).
+    """
+
+    sign: float = 1.0
+    w_ego_collision: float = 50.0
+    w_ego_hard_brake_per_s: float = 10.0
+    w_ego_stall: float = 20.0
+    w_ego_unsafe_gap_per_s: float = 10.0
+    own_collision_penalty: float = 100.0
+    hard_brake_mps2: float = 3.0
+    cut_in_grace_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -217,6 +261,11 @@ class SimConfig:
     """k: one env step holds the action for this many simulator steps."""
     n_highway_agents: int = 4
     """Highway agents per episode: the right-lane vehicles arriving closest in time to the ego."""
+    highway_agent_accel_bounds_mps2: tuple[float, float] = (-4.5, 2.5)
+    """Action bounds of controlled highway agents, scripted or learned: the ego's by default, so
+    a learned driver brakes no harder than the ramp vehicle can (a realistic adversary cannot
+    brake-check at the vehicle's 9 m/s^2 emergency limit). Scripted background traffic keeps
+    the full `VehicleConfig` limits."""
     continue_traffic: bool = True
     """`reset()` without a seed keeps the road flowing and sends the next ramp vehicle."""
 
@@ -232,6 +281,7 @@ class ScenarioConfig:
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
     ego: EgoConfig = field(default_factory=EgoConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
+    interaction: InteractionConfig = field(default_factory=InteractionConfig)
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self) -> None:
@@ -361,8 +411,22 @@ def validate(cfg: ScenarioConfig) -> None:
             "road.highway_upstream_m and highway_downstream_m must be < 4000 m",
         ),
         (s.dt_s > 0, f"sim.dt_s must be > 0, got {s.dt_s}"),
+        (
+            cfg.interaction.sign in (-1.0, 1.0),
+            f"interaction.sign must be 1 (adversarial) or -1 (cooperative), "
+            f"got {cfg.interaction.sign}",
+        ),
         (s.action_repeat >= 1, f"sim.action_repeat must be >= 1, got {s.action_repeat}"),
         (s.n_highway_agents >= 0, f"sim.n_highway_agents must be >= 0, got {s.n_highway_agents}"),
+        (
+            -cfg.vehicle.max_brake_mps2
+            <= s.highway_agent_accel_bounds_mps2[0]
+            < 0
+            < s.highway_agent_accel_bounds_mps2[1]
+            <= cfg.vehicle.max_accel_mps2,
+            "sim.highway_agent_accel_bounds_mps2 must be (negative, positive) within the vehicle "
+            f"limits, got {s.highway_agent_accel_bounds_mps2}",
+        ),
         (t.max_vehicles >= 2, f"traffic.max_vehicles must be >= 2, got {t.max_vehicles}"),
         (
             t.flow_vph_per_lane >= 0,

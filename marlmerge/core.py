@@ -155,6 +155,8 @@ class StepEvents:
     ego_outcome: np.ndarray  # [B] OUTCOME_* reached this step (OUTCOME_NONE if still running)
     collided: np.ndarray  # [B, N] slots involved in a collision this step
     exited: np.ndarray  # [B, N] slots that left the road downstream this step (ego excluded)
+    ego_partner: np.ndarray  # [B] slot the ego collided with this step, -1 if none
+    ego_rear: np.ndarray  # [B] bool: in that collision the ego was the rear vehicle
 
 
 class TrafficCore:
@@ -339,6 +341,18 @@ class TrafficCore:
         self.state.ego_outcome[rows] = OUTCOME_NONE
         self.nb = self._neighbours(self.state)
         self._version += 1
+
+    def pick_roster(self, k: int) -> np.ndarray:
+        """Slots of the mainline vehicles taking part in each world's current merge, [B, k] int:
+        the right-lane vehicles whose arrival time at the merge point (at current speeds) is
+        closest to the ego's, nearest in time first; -1 where the lane holds fewer than k."""
+        st = self.state
+        cand = st.active & (st.lane == RIGHT)  # [B, N]
+        cand[:, EGO] = False
+        t_arrive_s = -st.x_m / np.maximum(st.v_mps, 1.0)  # [B, N]
+        dt_s = np.where(cand, np.abs(t_arrive_s - t_arrive_s[:, EGO : EGO + 1]), np.inf)
+        order = np.argsort(dt_s, axis=1, kind="stable")[:, :k]
+        return np.where(np.take_along_axis(cand, order, axis=1), order, -1)
 
     # ------------------------------------------------------------------ neighbours
     def _neighbours(self, st: TrafficState) -> Neighbours:
@@ -558,6 +572,8 @@ class TrafficCore:
         hit = st.active & (nb.gap_m < 0.0)  # [B, N] rear vehicle of an overlapping pair
         collided = np.zeros_like(hit)
         ego_hit = np.zeros(st.batch_size, dtype=bool)
+        ego_partner = np.full(st.batch_size, -1, dtype=np.int64)
+        ego_rear = np.zeros(st.batch_size, dtype=bool)
         if hit.any():
             rows, slots = np.nonzero(hit)
             partner = nb.leader[rows, slots]  # front vehicle of each overlapping pair
@@ -569,6 +585,11 @@ class TrafficCore:
             ego_side[rows[with_ego], partner[with_ego]] = True
             ego_hit[rows[with_ego]] = True
             ego_hit &= ~st.collided[:, EGO]
+            r, s, p = rows[with_ego], slots[with_ego], partner[with_ego]
+            ego_partner[r] = np.where(s == EGO, p, s)
+            ego_rear[r] = s == EGO
+            ego_partner[~ego_hit] = -1
+            ego_rear &= ego_hit
             np.add.at(st.background_collisions, rows[~with_ego], 1)
             # mainline wrecks are towed away at once; the ego's stay until its episode is closed
             st.active &= ~(collided & ~ego_side)
@@ -588,7 +609,13 @@ class TrafficCore:
         outcome[ego_hit] = OUTCOME_COLLISION
         outcome[~running] = OUTCOME_NONE
         st.ego_outcome[running] = outcome[running]
-        return StepEvents(ego_outcome=outcome, collided=collided, exited=exited)
+        return StepEvents(
+            ego_outcome=outcome,
+            collided=collided,
+            exited=exited,
+            ego_partner=ego_partner,
+            ego_rear=ego_rear,
+        )
 
     def _mobil(
         self, st: TrafficState, nb: Neighbours, yielding: np.ndarray, controlled: np.ndarray | None

@@ -10,7 +10,8 @@ Agents
 
 Actions
     Box(1,) longitudinal acceleration in m/s^2, held for `sim.action_repeat` simulator steps.
-    `ramp_0`: [-4.5, 2.5] by default; `highway_*`: [-max_brake, max_accel] of `VehicleConfig`.
+    `ramp_0`: [-4.5, 2.5] by default; `highway_*`: `sim.highway_agent_accel_bounds_mps2`
+    (the same by default; scripted background traffic keeps the vehicle limits).
     Out-of-range values are clipped; NaN, infinite, wrongly shaped actions, agents that are not in
     `possible_agents` and missing actions of live agents raise `ValueError` naming the agent and the
     value. Actions for possible agents that are not live (done, or not in this episode's roster) are
@@ -21,7 +22,10 @@ Observations
     Box float32, scaled; layouts in `marlmerge.observation` (`EGO_FEATURES`, `HIGHWAY_FEATURES`).
 
 Rewards
-    Sums over the env step of the per-simulator-step terms of `marlmerge.reward`.
+    Sums over the env step of the per-simulator-step terms of `marlmerge.reward`: the ego's
+    `EGO_TERMS`; a highway agent's `LEARNED_HIGHWAY_TERMS` (its own driving terms plus the
+    interaction terms of `InteractionConfig`, adversarial by default, `interaction.sign = -1`
+    for cooperative agents).
 
 Infos
     Flat and numeric, with the same keys at `reset` and at every step (so torchrl's PettingZoo
@@ -62,7 +66,12 @@ from marlmerge.observation import (
     ego_observation,
     highway_observation,
 )
-from marlmerge.reward import EGO_TERMS, HIGHWAY_TERMS, ego_reward_terms, highway_reward_terms
+from marlmerge.reward import (
+    EGO_TERMS,
+    LEARNED_HIGHWAY_TERMS,
+    ego_reward_terms,
+    highway_agent_step_terms,
+)
 
 EGO_AGENT = "ramp_0"
 ENV_NAME = "marlmerge_ramp_v0"
@@ -118,17 +127,15 @@ class RampMergeParallelEnv(ParallelEnv):
         self.possible_agents = [EGO_AGENT] + [f"highway_{i}" for i in range(n_hw)]
         self.agents: list[str] = []
         lo, hi = self.cfg.ego.accel_bounds_mps2
-        vc = self.cfg.vehicle
+        hw_lo, hw_hi = self.cfg.sim.highway_agent_accel_bounds_mps2
         self._bounds = {EGO_AGENT: (lo, hi)}
         self._action_spaces = {EGO_AGENT: spaces.Box(lo, hi, (1,), np.float32)}
         self._observation_spaces = {
             EGO_AGENT: spaces.Box(-np.inf, np.inf, (len(EGO_FEATURES),), np.float32)
         }
         for a in self.possible_agents[1:]:
-            self._bounds[a] = (-vc.max_brake_mps2, vc.max_accel_mps2)
-            self._action_spaces[a] = spaces.Box(
-                -vc.max_brake_mps2, vc.max_accel_mps2, (1,), np.float32
-            )
+            self._bounds[a] = hw_lo, hw_hi
+            self._action_spaces[a] = spaces.Box(hw_lo, hw_hi, (1,), np.float32)
             self._observation_spaces[a] = spaces.Box(
                 -np.inf, np.inf, (len(HIGHWAY_FEATURES),), np.float32
             )
@@ -162,11 +169,12 @@ class RampMergeParallelEnv(ParallelEnv):
         else:
             self.core.reset()
         self._pick_roster()
+        self._ego_in_lane_s = 0.0
         self.agents = [EGO_AGENT] + list(self._slots)
         obs = self._observations(self.agents)
         infos = {EGO_AGENT: self._ego_info(dict.fromkeys(EGO_TERMS, 0.0))}
         for a in self._slots:
-            infos[a] = self._highway_info(a, dict.fromkeys(HIGHWAY_TERMS, 0.0))
+            infos[a] = self._highway_info(a, dict.fromkeys(LEARNED_HIGHWAY_TERMS, 0.0))
         return obs, infos
 
     def _ego_info(self, terms: dict[str, float]) -> dict[str, float | int]:
@@ -180,7 +188,7 @@ class RampMergeParallelEnv(ParallelEnv):
 
     def _highway_info(self, agent: str, terms: dict[str, float]) -> dict[str, float | int]:
         st = self.core.state  # type: ignore[union-attr]
-        info: dict[str, float | int] = {f"reward_{k}": terms[k] for k in HIGHWAY_TERMS}
+        info: dict[str, float | int] = {f"reward_{k}": terms[k] for k in LEARNED_HIGHWAY_TERMS}
         info["vehicle_id"] = self._ids[agent]
         info["profile"] = int(st.profile[0, self._slots[agent]])
         return info
@@ -189,12 +197,8 @@ class RampMergeParallelEnv(ParallelEnv):
         core = self.core
         assert core is not None
         st = core.state
-        n_hw = len(self.possible_agents) - 1
-        cand = np.flatnonzero(st.active[0] & (st.lane[0] == RIGHT))
-        cand = cand[cand != EGO]
-        t_ego = -st.x_m[0, EGO] / max(st.v_mps[0, EGO], 1.0)
-        t_cand = -st.x_m[0, cand] / np.maximum(st.v_mps[0, cand], 1.0)
-        chosen = cand[np.argsort(np.abs(t_cand - t_ego), kind="stable")[:n_hw]]
+        slots = core.pick_roster(len(self.possible_agents) - 1)[0]
+        chosen = slots[slots >= 0]
         self._slots = {f"highway_{i}": int(s) for i, s in enumerate(chosen)}
         self._ids = {a: int(st.vehicle_id[0, s]) for a, s in self._slots.items()}
 
@@ -240,7 +244,7 @@ class RampMergeParallelEnv(ParallelEnv):
         if hw_agents:
             hw_cmd = np.full((1, core.n_slots), np.nan)
             hw_cmd[0, hw_slots] = [acts[a] for a in hw_agents]
-        hw_terms = {a: dict.fromkeys(HIGHWAY_TERMS, 0.0) for a in hw_agents}
+        hw_terms = {a: dict.fromkeys(LEARNED_HIGHWAY_TERMS, 0.0) for a in hw_agents}
         gone: set[str] = set()
         outcome = OUTCOME_NONE
         trace = []  # per simulator step: the ego quantities its reward depends on
@@ -257,20 +261,15 @@ class RampMergeParallelEnv(ParallelEnv):
                     ev.collided[0, EGO],
                 )
             )
+            in_lane = st.lane[0, EGO] == RIGHT
+            self._ego_in_lane_s = self._ego_in_lane_s + cfg.sim.dt_s if in_lane else 0.0
             if hw_agents:
                 live = [a for a in hw_agents if a not in gone]
-                s = np.array([self._slots[a] for a in live], dtype=np.int64)
-                h = highway_reward_terms(
-                    cfg.reward,
-                    st.a_mps2[0, s],
-                    st.v_mps[0, s],
-                    core.nb.gap_m[0, s],
-                    ev.collided[0, s],
-                    core.v_limit,
-                )
+                s = np.array([[self._slots[a] for a in live]], dtype=np.int64)
+                h = highway_agent_step_terms(core, ev, g, s, np.array([self._ego_in_lane_s]))
                 for i, a in enumerate(live):
                     for k, v in h.items():
-                        hw_terms[a][k] += float(v[i])
+                        hw_terms[a][k] += float(v[0, i])
                     if not self._still_on_road(a):
                         gone.add(a)
                         hw_cmd[0, self._slots[a]] = np.nan

@@ -16,10 +16,13 @@ import torch
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import ScenarioConfig
 from marlmerge.core import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
 from marlmerge.metrics import EpisodeTrajectory, TrajectoryRecorder
 
 EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
 """observation [B, 7] -> acceleration [B, 1] (m/s^2)."""
+HighwayPolicy = Callable[[torch.Tensor], torch.Tensor]
+"""highway observation [B, K, 12] -> acceleration [B, K, 1] (m/s^2)."""
 
 
 @torch.no_grad()
@@ -30,24 +33,35 @@ def rollout_first_egos(
     seed: int,
     worlds: int = 50,
     record: bool = False,
+    highway_policy: HighwayPolicy | None = None,
 ) -> tuple[dict[str, np.ndarray], list[dict[str, np.ndarray]]]:
     """Run the first ego of `episodes` fresh worlds to its end.
 
-    Returns per-episode records (outcome code, time_s, total reward, mean |accel|) and, with
-    `record`, each episode's `EpisodeTrajectory` (simulator-step samples up to its end).
+    Returns per-episode records (outcome code, time_s, total reward, mean |accel|, collisions
+    between mainline vehicles during the episode) and, with `record`, each episode's
+    `EpisodeTrajectory` (simulator-step samples up to its end). With `highway_policy`, the K
+    highway agents of every world (`MultiAgentMergeEnv`) are driven by it instead of their
+    scripted profiles; the roads are the same either way.
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
         "time_s": [],
         "reward": [],
         "mean_abs_accel": [],
+        "background_collisions": [],
     }
     traces: list[EpisodeTrajectory] = []
     lo, hi = scenario.ego.accel_bounds_mps2
     for g in range(-(-episodes // worlds)):
         nw = min(worlds, episodes - g * worlds)
-        env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seed + g)
+        if highway_policy is None:
+            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seed + g)
+        else:
+            env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seed + g)
+            env.set_opponent_mix(1, 0.0)
         td = env.reset()
+        background0 = env.core.state.background_collisions.copy()
+        background = np.zeros(nw, dtype=np.int64)
         recorded: list[tuple[int, EpisodeTrajectory]] = []  # (world, episode)
         if record:
             recorder = TrajectoryRecorder(env.core)
@@ -59,8 +73,13 @@ def rollout_first_egos(
         while (outcome == 0).any():
             action = policy(td.get("observation")).reshape(nw, 1)
             td.set("action", action)
+            if highway_policy is not None:
+                td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
             nxt = env.step(td).get("next")
             running = outcome == 0
+            background = np.where(
+                running, env.core.state.background_collisions - background0, background
+            )
             abs_accel += np.abs(action.reshape(nw).double().clamp(lo, hi).numpy()) * running
             steps += running
             reward += nxt.get("reward").reshape(nw).numpy() * running
@@ -73,15 +92,23 @@ def rollout_first_egos(
         rec["time_s"].append(time_s)
         rec["reward"].append(reward)
         rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
+        rec["background_collisions"].append(background)
         traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
 
 
 def run_episodes(
-    policy: EgoPolicy, scenario: ScenarioConfig, episodes: int, seed: int, worlds: int = 50
+    policy: EgoPolicy,
+    scenario: ScenarioConfig,
+    episodes: int,
+    seed: int,
+    worlds: int = 50,
+    highway_policy: HighwayPolicy | None = None,
 ) -> dict[str, np.ndarray]:
-    """Per-episode records: outcome code, time_s, total reward, mean |accel| (m/s^2)."""
-    return rollout_first_egos(policy, scenario, episodes, seed, worlds)[0]
+    """Per-episode records: outcome code, time_s, total reward, mean |accel| (m/s^2), ..."""
+    return rollout_first_egos(
+        policy, scenario, episodes, seed, worlds, highway_policy=highway_policy
+    )[0]
 
 
 def summarize(rec: dict[str, np.ndarray]) -> dict[str, float]:
@@ -95,6 +122,7 @@ def summarize(rec: dict[str, np.ndarray]) -> dict[str, float]:
         "mean_merge_time_s": float(np.mean(rec["time_s"][ok])) if ok.any() else float("nan"),
         "mean_abs_accel_mps2": float(np.mean(rec["mean_abs_accel"])),
         "mean_total_reward": float(np.mean(rec["reward"])),
+        "background_collisions_per_episode": float(np.mean(rec["background_collisions"])),
     }
 
 
@@ -104,6 +132,8 @@ def evaluate_policy(
     episodes: int = 200,
     seed: int = 1_000_000,
     worlds: int = 50,
+    highway_policy: HighwayPolicy | None = None,
 ) -> dict[str, float]:
-    """Summary of `episodes` held-out episodes of a policy (e.g. a learner's greedy action)."""
-    return summarize(run_episodes(policy, scenario, episodes, seed, worlds))
+    """Summary of `episodes` held-out episodes of a policy (e.g. a learner's greedy action),
+    optionally against a learned highway policy."""
+    return summarize(run_episodes(policy, scenario, episodes, seed, worlds, highway_policy))

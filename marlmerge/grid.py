@@ -85,6 +85,40 @@ def condition_label(cfg: ScenarioConfig) -> str:
     return cfg.name.removeprefix("grid_").replace("_", " ")
 
 
+@dataclass(frozen=True)
+class Condition:
+    """A traffic condition: a scenario preset, optionally with learned highway agents.
+
+    With `highway` (one saved highway policy per adversary training seed), the K highway agents of
+    every episode are driven by each of them in turn and the episodes are pooled; the roads are
+    the same as the preset's scripted column.
+    """
+
+    preset: str
+    label: str
+    highway: tuple[str, ...] = ()
+
+
+def parse_condition(spec: str) -> Condition:
+    """`PRESET` or `[label=]PRESET+highway:GLOB` (GLOB matches run folders holding a
+    `highway_policy.pt`, or such files)."""
+    label, _, body = spec.rpartition("=")
+    preset, plus, learned = body.partition("+")
+    scen = resolve_config(preset)
+    if not plus:
+        return Condition(preset, label or condition_label(scen))
+    kind, _, pattern = learned.partition(":")
+    if kind != "highway" or not pattern:
+        raise ValueError(f"unknown condition {spec!r} (use PRESET or [label=]PRESET+highway:GLOB)")
+    found = tuple(sorted(glob.glob(pattern))) or (pattern,)
+    missing = [
+        r for r in found if not (r.endswith(".pt") or (Path(r) / "highway_policy.pt").exists())
+    ]
+    if missing:
+        raise ValueError(f"condition {spec!r}: no highway_policy.pt in {missing[0]!r}")
+    return Condition(preset, label or f"{condition_label(scen)} + learned", found)
+
+
 def default_conditions() -> list[str]:
     envs = find_preset("default").parent
     return [str(p) for p in sorted(envs.glob("grid_*.toml"), key=_condition_order)]
@@ -109,7 +143,7 @@ class GridResult:
 
 def run_grid(
     policies: Sequence[PolicySpec],
-    conditions: Sequence[str],
+    conditions: Sequence[str | Condition],
     episodes: int = 30,
     seed: int = 2_000_000,
     worlds: int = 50,
@@ -117,14 +151,19 @@ def run_grid(
     progress: bool = True,
 ) -> GridResult:
     """Evaluate every policy on every condition; write the CSV, the summary and the heat maps."""
+    from marlmerge.cotrain import load_highway_policy
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    scenarios = [resolve_config(c) for c in conditions]
+    conds = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
+    scenarios = [resolve_config(c.preset) for c in conds]
+    presets = list(dict.fromkeys(s.name for s in scenarios))  # one list of roads per preset
     jobs = [
-        (ci, p, run)
-        for ci in range(len(scenarios))
+        (ci, p, run, hw)
+        for ci in range(len(conds))
         for p in policies
         for run in (p.runs or (None,))
+        for hw in (conds[ci].highway or (None,))
     ]
     bar = None
     if progress:
@@ -133,21 +172,29 @@ def run_grid(
         bar = tqdm(total=len(jobs) * episodes, unit="ep", desc="grid", dynamic_ncols=True)
     rows: list[dict] = []
     t0 = time.perf_counter()
-    for ci, spec, run in jobs:
+    for ci, spec, run, hw in jobs:
         scen = scenarios[ci]
         policy = make_policy(spec, run, scen)
-        _, traces = rollout_first_egos(
-            policy, scen, episodes, seed + 1000 * ci, worlds, record=True
+        rec, traces = rollout_first_egos(
+            policy,
+            scen,
+            episodes,
+            seed + 1000 * presets.index(scen.name),
+            worlds,
+            record=True,
+            highway_policy=None if hw is None else load_highway_policy(hw),
         )
         for i, traj in enumerate(traces):
             rows.append(
                 {
                     "policy": spec.name,
                     "run": run or "-",
-                    "condition": condition_label(scen),
+                    "condition": conds[ci].label,
+                    "highway": hw or "scripted",
                     "flow_vph_per_lane": scen.traffic.flow_vph_per_lane,
                     "episode": i,
                     **episode_metrics(traj),
+                    "background_collisions": int(rec["background_collisions"][i]),
                 }
             )
         if bar is not None:
@@ -157,7 +204,7 @@ def run_grid(
         bar.close()
     result = GridResult(rows, len(rows) / max(wall, 1e-9), wall, out)
     write_csv(rows, out / "episodes.csv")
-    labels = [condition_label(s) for s in scenarios]
+    labels = list(dict.fromkeys(c.label for c in conds))
     names = list(dict.fromkeys(p.name for p in policies))
     (out / "summary.md").write_text(summary_markdown(rows, names, labels, result, episodes, seed))
     plot_heatmaps(rows, names, labels, out)
@@ -251,6 +298,15 @@ def summary_markdown(
                 f"{_fmt_mean(_cell(rows, p, c, 'min_headway_after_merge_s'), 2)} / "
                 f"{_fmt_mean(_cell(rows, p, c, 'follower_min_accel_mps2'))}"
             ),
+        ),
+        "",
+        "## Collisions among mainline vehicles (not involving the ego), per episode",
+        "",
+        *_table(
+            rows,
+            policies,
+            conds,
+            lambda p, c: _fmt_mean(_cell(rows, p, c, "background_collisions"), 3),
         ),
         "",
         "## Timeliness: time to merge (s)",

@@ -28,7 +28,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -176,6 +176,15 @@ class TrainConfig:
 
 def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:
     """A training preset (TOML), loaded strictly, with optional field overrides."""
+    return load_preset(TrainConfig, path, **overrides)
+
+
+C = TypeVar("C")
+
+
+def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
+    """A preset of the dataclass `cls`: a TOML path, or a name in `trainers/`; loaded strictly
+    (unknown keys raise), `name` defaulting to the file's stem, with field overrides."""
     path = Path(path)
     if not path.exists():
         known = sorted(
@@ -190,7 +199,7 @@ def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:
     data.setdefault("name", path.stem)
     data.update(overrides)
     try:
-        return from_dict(TrainConfig, data)
+        return from_dict(cls, data)
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None
 

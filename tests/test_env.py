@@ -8,7 +8,7 @@ import marlmerge
 from marlmerge.core import OUTCOME_NAMES
 from marlmerge.env import EGO_AGENT, reward_terms
 from marlmerge.observation import EGO_FEATURES, HIGHWAY_FEATURES
-from marlmerge.reward import EGO_TERMS, HIGHWAY_TERMS
+from marlmerge.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
 
 def test_parallel_api_test():
@@ -122,7 +122,7 @@ def test_reward_terms_are_reported_and_sum_to_the_reward():
         assert all(v <= 0.0 for v in terms.values())
         for a in rew:
             if a != EGO_AGENT:
-                assert tuple(reward_terms(info[a])) == HIGHWAY_TERMS
+                assert tuple(reward_terms(info[a])) == LEARNED_HIGHWAY_TERMS
         seen |= {k for k, v in terms.items() if v < 0}
         if not env.agents:
             assert OUTCOME_NAMES[info[EGO_AGENT]["outcome"]] in (

@@ -101,3 +101,46 @@ def test_cli_grid(tmp_path, capsys):
         == 0
     )
     assert "Success % / collision %" in capsys.readouterr().out
+
+
+def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
+    import torch
+
+    from marlmerge.config import ScenarioConfig
+    from marlmerge.cotrain import CoTrainConfig, save_highway_policy
+    from marlmerge.grid import parse_condition
+    from marlmerge.learners.quadq import QuadraticQNet
+
+    # a highway policy that brakes at every step: greedy B(s) pinned to the lower bound
+    net = QuadraticQNet(12, 64, action_low=-4.5, action_high=2.5)
+    with torch.no_grad():
+        net.head_weight.zero_()
+        net.head_bias[1] = -30.0  # B's pre-squash output -> B ~ -4.5 m/s^2
+    for seed in (0, 1):
+        (tmp_path / f"adv_s{seed}").mkdir()
+        save_highway_policy(
+            tmp_path / f"adv_s{seed}" / "highway_policy.pt",
+            net.state_dict(),
+            CoTrainConfig(ego_init="x", ego_pretrain_sim_steps=0),
+            ScenarioConfig(),
+        )
+    cond = parse_condition(f"braking=grid_light_cooperative+highway:{tmp_path}/adv_s*")
+    assert cond.label == "braking" and len(cond.highway) == 2
+    with pytest.raises(ValueError, match="no highway_policy.pt"):
+        parse_condition("grid_light_cooperative+highway:/nonexistent/run")
+    res = run_grid(
+        [parse_policy("hold")],
+        ["grid_light_cooperative", cond],
+        episodes=4,
+        worlds=4,
+        out_dir=tmp_path / "g",
+        progress=False,
+    )
+    rows = res.rows
+    scripted = [r for r in rows if r["condition"] == "light cooperative"]
+    learned = [r for r in rows if r["condition"] == "braking"]
+    assert len(scripted) == 4 and len(learned) == 8  # pooled over the two adversary runs
+    assert {r["highway"] for r in learned} == {f"{tmp_path}/adv_s0", f"{tmp_path}/adv_s1"}
+    # same roads, different drivers: the braking agents change what the ego meets
+    assert [r["min_ttc_front_s"] for r in learned[:4]] != [r["min_ttc_front_s"] for r in scripted]
+    assert "braking" in (tmp_path / "g" / "summary.md").read_text()

@@ -1,0 +1,105 @@
+"""Co-training at a tiny budget: both phases run, both groups are checkpointed, a kill resumes."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import marlmerge
+from marlmerge.cli import main
+from marlmerge.cotrain import CoTrainConfig, cotrain, load_cotrain_config, load_highway_policy
+from marlmerge.learners.baselines_rl import load_policy
+
+TINY = dict(
+    ego_pretrain_sim_steps=4_096,
+    rounds=2,
+    adversary_sim_steps=3_072,
+    ego_sim_steps=3_072,
+    num_worlds=8,
+    learning_starts=256,
+    replay_capacity=20_000,
+    update_path="fast",
+    checkpoint_every_sim_steps=2_048,
+    eval_episodes=6,
+    eval_worlds=3,
+)
+
+
+def _tiny(**kw):
+    return load_cotrain_config("cotrain", **{**TINY, **kw})
+
+
+def _phases_logged(path):
+    with open(path, newline="") as fh:
+        return [r["phase"] for r in csv.DictReader(fh)]
+
+
+def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp_path):
+    cfg = _tiny()
+    assert [k for k, _ in cfg.phases()] == ["pretrain", "adversary", "ego", "adversary", "ego"]
+    result = cotrain(cfg, tmp_path, progress=False)
+    assert result.pool_size == 2
+    for name in ("policy.pt", "policy_pretrained.pt", "highway_policy.pt", "checkpoint.pt"):
+        assert (tmp_path / name).exists(), name
+    assert len(list((tmp_path / "pool").glob("adversary_*.pt"))) == 2
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    for group in ("ego", "highway"):  # weights, target, optimiser and replay of both groups
+        state = ckpt[group]
+        assert state["updates"] > 0 and state["optimizer"] is not None
+        assert any("target" in k for k in state["loss"])
+    logged = set(_phases_logged(tmp_path / "highway.csv"))
+    assert logged == {"pretrain", "adversary", "ego"}
+    # highway transitions were learned from only in the adversary phases
+    with open(tmp_path / "loss.csv", newline="") as fh:
+        groups = {r["group"] for r in csv.DictReader(fh)}
+    assert groups == {"ego", "highway"}
+    ev = json.loads((tmp_path / "evaluation.json").read_text())
+    assert set(ev) == {"scripted", "latest_highway_policy"}
+    # saved policies load through the common interfaces
+    ego = load_policy(tmp_path)
+    assert ego(torch.zeros(5, 7)).shape == (5, 1)
+    hw = load_highway_policy(tmp_path)
+    assert hw(torch.zeros(2, 4, 12)).shape == (2, 4, 1)
+    # the learned highway policy drives the PettingZoo env's highway agents, like a scripted one
+    env = marlmerge.parallel_env()
+    obs, _ = env.reset(seed=3)
+    while env.agents:
+        actions = {
+            a: np.zeros(1, np.float32) if a == "ramp_0" else hw(torch.as_tensor(obs[a])).numpy()
+            for a in env.agents
+        }
+        obs, rewards, _, _, infos = env.step(actions)
+        assert all(np.isfinite(r) for r in rewards.values())
+
+
+def test_a_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
+    cfg = _tiny(rounds=1)
+    full = tmp_path / "full"
+    cut = tmp_path / "cut"
+    cotrain(cfg, full, progress=False)
+    # killed mid-way through the adversary phase (after a checkpoint at 6,144 steps)
+    cotrain(cfg, cut, progress=False, stop_after_sim_steps=6_700)
+    ckpt = torch.load(cut / "checkpoint.pt", weights_only=False)
+    assert ckpt["phase_index"] == 1 and ckpt["phase_done"] > 0  # inside the adversary phase
+    assert not (cut / "policy.pt").exists()
+    cotrain(cfg, cut, resume=True, progress=False)
+    a = torch.load(full / "policy.pt", weights_only=False)["net"]
+    b = torch.load(cut / "policy.pt", weights_only=False)["net"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    ha = torch.load(full / "highway_policy.pt", weights_only=False)["net"]
+    hb = torch.load(cut / "highway_policy.pt", weights_only=False)["net"]
+    for k in ha:
+        assert torch.equal(ha[k], hb[k]), k
+    assert (full / "egos.csv").read_text() == (cut / "egos.csv").read_text()
+
+
+def test_bad_config_and_cli_errors_name_the_value(tmp_path, capsys):
+    with pytest.raises(ValueError, match="profile"):
+        CoTrainConfig(profile="kamikaze")
+    with pytest.raises(ValueError, match="unknown"):
+        load_cotrain_config("cotrain", no_such_key=1)
+    assert main(["cotrain", "cotrain", "--set", "rounds=-1", "--out", str(tmp_path)]) == 2
+    assert "rounds" in capsys.readouterr().err

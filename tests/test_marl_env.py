@@ -1,0 +1,148 @@
+"""The highway agent group of the multi-agent torchrl view, and the interaction reward."""
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from marlmerge.batched_env import BatchedMergeEnv
+from marlmerge.config import InteractionConfig
+from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
+from marlmerge.reward import INTERACTION_TERMS, ego_collision_blame, interaction_terms
+
+
+def _const_policy(ego_a, hw_a):
+    def policy(td):
+        b = td.batch_size[0]
+        td.set("action", torch.full((b, 1), ego_a))
+        td.set((GROUP, "action"), torch.full((b, 4, 1), hw_a))
+        return td
+
+    return policy
+
+
+def test_group_spec_has_the_agent_dimension_and_passes_check_env_specs():
+    env = MultiAgentMergeEnv(num_worlds=3, seed=0)
+    assert env.observation_spec[GROUP, "observation"].shape == (3, 4, 12)
+    assert env.observation_spec[GROUP, "mask"].shape == (3, 4)
+    assert env.full_action_spec[GROUP, "action"].shape == (3, 4, 1)
+    assert env.full_reward_spec[GROUP, "reward"].shape == (3, 4, 1)
+    check_env_specs(env, seed=0)
+
+
+def test_masks_drop_agents_that_leave_the_road_and_zero_their_observations():
+    env = MultiAgentMergeEnv(num_worlds=4, seed=1)
+    env.set_opponent_mix(1, 0.0)
+    # the ego waits on the ramp (it stalls: long episodes); highway agents floor it and exit
+    td = env.rollout(150, _const_policy(-4.5, 3.0), break_when_any_done=False)
+    mask = td[GROUP, "mask"]  # [B, T, K]
+    left = td["next", GROUP, "left_road"]
+    next_mask = td["next", GROUP, "mask"]
+    assert left.any(), "agents flooring it should leave the road within 150 env steps"
+    # left_road marks exactly the acting agents that are gone after the step; those that drove
+    # off the road's end (not towed away after a collision) are also marked exited
+    assert torch.equal(left, mask & ~next_mask)
+    exited = td["next", GROUP, "exited"]
+    assert exited.any() and not (exited & ~left).any()
+    # once gone, an agent stays masked until its world's next ego departs
+    episode_over = td["next", "done"].squeeze(-1)  # [B, T]
+    for w, s in zip(*np.nonzero(left.any(-1).numpy()), strict=True):
+        if s + 1 < td.shape[1] and not episode_over[w, s]:
+            assert not (mask[w, s + 1] & left[w, s]).any()
+    assert (td["next", GROUP, "observation"][~next_mask] == 0).all()
+    assert (td["next", GROUP, "reward"][~mask] == 0).all()
+
+
+def test_scripted_worlds_ignore_highway_actions_and_match_the_single_agent_view():
+    a = MultiAgentMergeEnv(num_worlds=3, seed=5)
+    a.set_opponent_mix(0, 1.0)  # every world scripted
+    b = BatchedMergeEnv(num_worlds=3, seed=5)
+    ta = a.rollout(60, _const_policy(0.5, -9.0), break_when_any_done=False)
+
+    def ego_only(td):
+        td.set("action", torch.full((3, 1), 0.5))
+        return td
+
+    tb = b.rollout(60, ego_only, break_when_any_done=False)
+    assert torch.equal(ta["next", "observation"], tb["next", "observation"])
+    assert torch.equal(ta["next", "reward"], tb["next", "reward"])
+    assert (ta["opponent"] == -1).all()
+
+
+def test_bad_highway_actions_raise_naming_the_agent():
+    env = MultiAgentMergeEnv(num_worlds=2, seed=0)
+    env.set_opponent_mix(1, 0.0)
+    td = env.reset()
+    td.set("action", torch.zeros(2, 1))
+    act = torch.zeros(2, 4, 1)
+    w, k = np.argwhere(env.mask)[0]
+    act[w, k] = float("nan")
+    td.set((GROUP, "action"), act)
+    with pytest.raises(ValueError, match=f"highway agent {k} in world {w}"):
+        env.step(td)
+    with pytest.raises(ValueError, match="opponent"):
+        env.set_opponent_mix(0, 0.5)
+
+
+# ---------------------------------------------------------------------- the interaction term
+
+CFG = InteractionConfig()
+SLOTS = np.array([[3, 5]])  # one world, two highway agents in slots 3 and 5
+
+
+def _terms(**kw):
+    args = dict(
+        ego_accel_mps2=np.array([0.0]),
+        ego_partner=np.array([-1]),
+        ego_rear=np.array([False]),
+        ego_in_lane_s=np.array([5.0]),
+        ego_truncated=np.array([False]),
+        gap_front=np.array([-1]),
+        gap_back=np.array([-1]),
+    )
+    args.update(kw)
+    cfg = args.pop("cfg", CFG)
+    return interaction_terms(cfg, SLOTS, 0.1, **args)
+
+
+def _all_zero(terms):
+    return all(np.all(terms[t] == 0) for t in INTERACTION_TERMS)
+
+
+def test_interaction_term_is_zero_when_the_ego_fails_for_unrelated_reasons():
+    # the ego crashes into vehicle 9, which is not a highway agent
+    assert _all_zero(_terms(ego_partner=np.array([9]), ego_rear=np.array([True])))
+    # the ego stalls out while the agents are not its gap vehicles
+    assert _all_zero(
+        _terms(ego_truncated=np.array([True]), gap_front=np.array([7]), gap_back=np.array([8]))
+    )
+    # the ego brakes hard behind some other vehicle
+    assert _all_zero(_terms(ego_accel_mps2=np.array([-4.5]), gap_front=np.array([7])))
+    # no failure at all, though agent 3 is right in front of the ego
+    assert _all_zero(_terms(gap_front=np.array([3]), gap_back=np.array([5])))
+
+
+def test_interaction_term_credits_only_the_contributing_agent():
+    t = _terms(ego_partner=np.array([5]), ego_rear=np.array([True]))  # ego rear-ends agent 5
+    assert t["ego_collision"].tolist() == [[0.0, CFG.w_ego_collision]]
+    t = _terms(ego_accel_mps2=np.array([-4.0]), gap_front=np.array([3]))
+    assert t["ego_hard_brake"].tolist() == [[pytest.approx(0.1 * CFG.w_ego_hard_brake_per_s), 0]]
+    t = _terms(ego_truncated=np.array([True]), gap_front=np.array([7]), gap_back=np.array([5]))
+    assert t["ego_stall"].tolist() == [[0.0, CFG.w_ego_stall]]
+    # cooperative: the same terms with the sign flipped
+    coop = InteractionConfig(sign=-1.0)
+    t = _terms(cfg=coop, ego_partner=np.array([5]), ego_rear=np.array([True]))
+    assert t["ego_collision"].tolist() == [[0.0, -CFG.w_ego_collision]]
+
+
+def test_a_rear_end_into_an_established_ego_is_the_agents_own_fault():
+    # agent 3 hits the ego from behind 5 s after the ego joined the lane: no credit, blamed
+    t = _terms(ego_partner=np.array([3]), ego_rear=np.array([False]))
+    assert _all_zero(t)
+    ego_blamed, agent_blamed = ego_collision_blame(
+        CFG, SLOTS, np.array([3]), np.array([False]), np.array([5.0])
+    )
+    assert agent_blamed.tolist() == [[True, False]] and not ego_blamed.any()
+    # ... but if the ego cut in 0.3 s before, the ego is to blame and the agent is credited
+    t = _terms(ego_partner=np.array([3]), ego_rear=np.array([False]), ego_in_lane_s=np.array([0.3]))
+    assert t["ego_collision"].tolist() == [[CFG.w_ego_collision, 0.0]]
