@@ -182,8 +182,21 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
         f"done: {result.sim_steps:,} simulator steps, {result.egos:,} ramp vehicles, "
         f"{result.pool_size} highway snapshots in the pool, {result.wall_s:.0f} s"
     )
-    for name, ev in (result.evaluation or {}).items():
-        print(f"final ego vs {name.replace('_', ' ')} traffic:")
+    evaluation = dict(result.evaluation or {})
+    sel = evaluation.pop("selection", None)
+    if sel is not None:
+        scores = ", ".join(
+            f"{'start' if i < 0 else f'after phase {i + 1}'}: {sum(row)}"
+            for i, row in zip(sel["candidate_phase_index"], sel["failures"], strict=True)
+        )
+        chosen = sel["chosen_phase_index"]
+        print(
+            f"ego selection, failures in {sel['episodes_per_opponent']} episodes against each of "
+            f"{len(sel['opponents'])} opponents (scripted + own pool): {scores}; policy.pt = "
+            f"{'the starting ego' if chosen < 0 else f'the ego after phase {chosen + 1}'}"
+        )
+    for name, ev in evaluation.items():
+        print(f"selected ego vs {name.replace('_', ' ')} traffic:")
         _print_evaluation(ev)
     print(f"logs, checkpoint and policies in {out}")
     return 0
@@ -219,10 +232,10 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
 
 def grid_cmd(args: argparse.Namespace) -> int:
     """Evaluate policies across traffic conditions: CSV, Markdown summary, heat maps."""
-    from marlmerge.grid import default_conditions, parse_policy, run_grid
+    from marlmerge.grid import default_conditions, expand_conditions, parse_policy, run_grid
 
     policies = [parse_policy(p) for p in (args.policy or ["hold", "idm", "gap"])]
-    conditions = args.condition or default_conditions()
+    conditions = expand_conditions(args.condition) if args.condition else default_conditions()
     result = run_grid(
         policies,
         conditions,
@@ -316,8 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--condition",
         action="append",
         metavar="SPEC",
-        help="scenario preset, or [label=]PRESET+highway:RUN_GLOB for learned highway agents "
-        "(repeatable; default: every envs/grid_*.toml)",
+        help="scenario preset (a glob such as 'grid_*' expands to presets), or "
+        "[label=]PRESET+highway:RUN_GLOB for learned highway agents (repeatable; default: every "
+        "envs/grid_*.toml)",
     )
     g.add_argument("--episodes", type=int, default=30, help="episodes per condition")
     g.add_argument("--seed", type=int, default=2_000_000, help="first evaluation seed")

@@ -24,10 +24,20 @@ The highway reward is its own driving reward plus the interaction term of `Inter
 weights, targets, optimisers and replays, the pool, the worlds and every generator) at
 `checkpoint_every_sim_steps` and at every phase end; `resume=True` continues from there.
 
-Outputs in the run folder: `policy.pt` (final ego, loadable by `load_policy` and the grid),
-`policy_pretrained.pt` (the ego before any co-training, when pretrained here), `highway_policy.pt`
-(the latest highway policy; `load_highway_policy`), `pool/adversary_<i>.pt`, `egos.csv`,
-`highway.csv`, `loss.csv`, `checkpoint.pt`, `evaluation.json`.
+The quadratic-Q ego does not improve monotonically from phase to phase (one ego phase can leave
+it weaker against some opponents than the one before). At the end every ego of the run (the
+starting ego and the ego after each ego phase) is scored on greedy episodes against scripted
+traffic and against every snapshot of the run's own pool (`select_episodes`), and the one with the
+fewest failures becomes `policy.pt`: model selection on the training opponents, never on held-out
+ones.
+
+Outputs in the run folder: `policy.pt` (the selected ego, loadable by `load_policy` and the grid),
+`policy_last.pt` (the ego at the end of the schedule), `policy_pretrained.pt` (the ego before any
+co-training, when pretrained here), `highway_policy.pt` (the latest highway policy;
+`load_highway_policy`), `pool/adversary_<i>.pt`, `pool/ego_start.pt` and `pool/ego_<i>.pt`
+(the ego at the start and after each ego phase), `egos.csv`, `highway.csv`, `loss.csv`,
+`checkpoint.pt`, `evaluation.json` (the selection's scores, then the selected ego against
+scripted traffic and the latest highway policy).
 """
 
 from __future__ import annotations
@@ -93,7 +103,7 @@ class CoTrainConfig:
     """A trained quadratic-Q ego (`policy.pt` or run folder) to start from; "" = pretrain here."""
     ego_pretrain_sim_steps: int = 1_600_000
     """Pretrain phase (skipped with `ego_init`): the paper's recipe against scripted traffic."""
-    rounds: int = 3
+    rounds: int = 5
     """(adversary, ego) phase pairs after pretraining."""
     adversary_sim_steps: int = 400_000
     """Simulator steps (summed over worlds) of each adversary phase; 0 skips them."""
@@ -134,6 +144,14 @@ class CoTrainConfig:
     and against the latest highway policy ..."""
     eval_seed: int = 1_000_000
     eval_worlds: int = 50
+    select_episodes: int = 200
+    """After training, every ego of the run (the starting ego and the ego after each ego phase)
+    meets scripted traffic and each of the run's own pool snapshots for this many greedy
+    episodes; `policy.pt` is the ego with the fewest failures (collisions + truncations), the
+    latest on ties. 0 keeps the last ego. The run's own adversaries only: held-out adversaries
+    never take part."""
+    select_seed: int = 3_000_000
+    """First seed of the selection episodes (apart from `eval_seed` and the grid's seeds)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -146,6 +164,10 @@ class CoTrainConfig:
             (self.rounds >= 0, f"rounds must be >= 0, got {self.rounds}"),
             (0.0 <= self.scripted_fraction <= 1.0, "scripted_fraction must lie in [0, 1]"),
             (self.pool_size >= 1, f"pool_size must be >= 1, got {self.pool_size}"),
+            (
+                self.select_episodes >= 0,
+                f"select_episodes must be >= 0, got {self.select_episodes}",
+            ),
             (0.0 < self.gamma < 1.0, f"gamma must lie in (0, 1), got {self.gamma}"),
             (
                 self.target_update_period % self.updates_per_call == 0,
@@ -534,6 +556,7 @@ def cotrain(
     ego = GroupLearner(cfg, len(EGO_FEATURES), ego_bounds, cfg.seed * 1000 + 10, ego_init)
     hw = GroupLearner(cfg, len(HIGHWAY_FEATURES), hw_bounds, cfg.seed * 1000 + 20)
     pool: list[dict[str, Tensor]] = []
+    egos_kept: list[tuple[int, dict[str, Tensor]]] = []  # (phase index, weights): candidates
     phases = cfg.phases()
     phase_index, phase_done, total = 0, 0, 0
     egos = 0
@@ -541,6 +564,7 @@ def cotrain(
         ego.load_state_dict(ckpt["ego"])
         hw.load_state_dict(ckpt["highway"])
         pool = ckpt["pool"]
+        egos_kept = ckpt.get("egos_kept", [])  # absent in checkpoints of older versions
         phase_index, phase_done, total = ckpt["phase_index"], ckpt["phase_done"], ckpt["total"]
         egos = ckpt["egos"]
         _restore_env(env, ckpt["env"])
@@ -568,6 +592,7 @@ def cotrain(
                 "ego": ego.state_dict(),
                 "highway": hw.state_dict(),
                 "pool": pool,
+                "egos_kept": egos_kept,
                 "phase_index": phase_index,
                 "phase_done": phase_done,
                 "total": total,
@@ -581,6 +606,13 @@ def cotrain(
             },
         )
 
+    def keep_ego(index: int) -> None:
+        egos_kept.append((index, ego.snapshot()))
+        name = f"ego_{index}.pt" if index >= 0 else "ego_start.pt"
+        save_ego_policy(out / "pool" / name, ego.net, cfg, scen)
+
+    if ego_init is not None and ckpt is None:
+        keep_ego(-1)  # the starting ego is a candidate too
     killed = False
     while phase_index < len(phases) and not killed:
         kind, length = phases[phase_index]
@@ -729,6 +761,8 @@ def cotrain(
         # ---- phase end: snapshots, then a checkpoint at the start of the next phase
         if kind == "pretrain":
             save_ego_policy(out / "policy_pretrained.pt", ego.net, cfg, scen)
+        if kind in ("pretrain", "ego"):
+            keep_ego(phase_index)
         if kind == "adversary":
             pool.append(hw.snapshot())
             pool = pool[-cfg.pool_size :]
@@ -747,15 +781,19 @@ def cotrain(
     wall = time.perf_counter() - t0
     evaluation = None
     if phase_index >= len(phases):
+        save_ego_policy(out / "policy_last.pt", ego.net, cfg, scen)
+        evaluation = {}
+        if cfg.select_episodes > 0 and len(egos_kept) > 1:
+            evaluation["selection"] = select_ego(egos_kept, pool, cfg, scen)
+            chosen = evaluation["selection"]["chosen_phase_index"]
+            ego.net.load_state_dict(dict(egos_kept)[chosen])
         save_ego_policy(out / "policy.pt", ego.net, cfg, scen)
         if cfg.eval_episodes > 0:
             from marlmerge.evaluate import evaluate_policy
 
-            evaluation = {
-                "scripted": evaluate_policy(
-                    ego.net.greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
-                )
-            }
+            evaluation["scripted"] = evaluate_policy(
+                ego.net.greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+            )
             if pool:
                 evaluation["latest_highway_policy"] = evaluate_policy(
                     ego.net.greedy,
@@ -768,8 +806,52 @@ def cotrain(
                         scen,
                     ),
                 )
-            (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1))
+        (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1))
     return CoTrainResult(out, total, egos, wall, len(pool), evaluation)
+
+
+def select_ego(
+    candidates: list[tuple[int, dict[str, Tensor]]],
+    pool: list[dict[str, Tensor]],
+    cfg: CoTrainConfig,
+    scen: ScenarioConfig,
+) -> dict[str, Any]:
+    """Score each candidate ego (phase index, weights) by its failures (collisions +
+    truncations) in `cfg.select_episodes` greedy episodes against scripted traffic and against
+    each pool snapshot, the same episodes for all; the fewest failures wins, the latest on ties."""
+    from marlmerge.evaluate import evaluate_policy
+
+    opponents: list[HighwayPolicy | None] = [None] + [
+        ResidualHighwayPolicy(
+            frozen_net(s, len(HIGHWAY_FEATURES), cfg.hidden, OFFSET_BOUNDS_MPS2).greedy, scen
+        )
+        for s in pool
+    ]
+    net = QuadraticQNet(
+        len(EGO_FEATURES),
+        cfg.hidden,
+        action_low=scen.ego.accel_bounds_mps2[0],
+        action_high=scen.ego.accel_bounds_mps2[1],
+    )
+    failures: list[list[int]] = []
+    for _, weights in candidates:
+        net.load_state_dict(weights)
+        row = []
+        for opp in opponents:
+            r = evaluate_policy(
+                net.greedy, scen, cfg.select_episodes, cfg.select_seed, cfg.eval_worlds, opp
+            )
+            row.append(round((r["collision_rate"] + r["truncation_rate"]) * r["episodes"]))
+        failures.append(row)
+    totals = [sum(row) for row in failures]
+    best = min(range(len(candidates)), key=lambda i: (totals[i], -i))
+    return {
+        "episodes_per_opponent": cfg.select_episodes,
+        "opponents": ["scripted"] + [f"pool_{i}" for i in range(len(pool))],
+        "candidate_phase_index": [i for i, _ in candidates],
+        "failures": failures,
+        "chosen_phase_index": candidates[best][0],
+    }
 
 
 __all__ = [

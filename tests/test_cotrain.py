@@ -24,6 +24,7 @@ TINY = dict(
     checkpoint_every_sim_steps=2_048,
     eval_episodes=6,
     eval_worlds=3,
+    select_episodes=3,
 )
 
 
@@ -41,9 +42,15 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
     assert [k for k, _ in cfg.phases()] == ["pretrain", "adversary", "ego", "adversary", "ego"]
     result = cotrain(cfg, tmp_path, progress=False)
     assert result.pool_size == 2
-    for name in ("policy.pt", "policy_pretrained.pt", "highway_policy.pt", "checkpoint.pt"):
+    for name in ("policy.pt", "policy_last.pt", "policy_pretrained.pt", "highway_policy.pt"):
         assert (tmp_path / name).exists(), name
     assert len(list((tmp_path / "pool").glob("adversary_*.pt"))) == 2
+    # the candidates for policy.pt: the ego after pretraining and after each ego phase
+    assert sorted(p.name for p in (tmp_path / "pool").glob("ego_*.pt")) == [
+        "ego_0.pt",
+        "ego_2.pt",
+        "ego_4.pt",
+    ]
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     for group in ("ego", "highway"):  # weights, target, optimiser and replay of both groups
         state = ckpt[group]
@@ -56,7 +63,19 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
         groups = {r["group"] for r in csv.DictReader(fh)}
     assert groups == {"ego", "highway"}
     ev = json.loads((tmp_path / "evaluation.json").read_text())
-    assert set(ev) == {"scripted", "latest_highway_policy"}
+    assert set(ev) == {"selection", "scripted", "latest_highway_policy"}
+    sel = ev["selection"]
+    assert sel["candidate_phase_index"] == [0, 2, 4]
+    assert sel["opponents"] == ["scripted", "pool_0", "pool_1"]
+    assert np.array(sel["failures"]).shape == (3, 3)
+    totals = [sum(row) for row in sel["failures"]]
+    best = sel["candidate_phase_index"].index(sel["chosen_phase_index"])
+    assert totals[best] == min(totals) and totals[best + 1 :].count(min(totals)) == 0
+    chosen = torch.load(
+        tmp_path / "pool" / f"ego_{sel['chosen_phase_index']}.pt", weights_only=False
+    )
+    saved = torch.load(tmp_path / "policy.pt", weights_only=False)
+    assert all(torch.equal(chosen["net"][k], saved["net"][k]) for k in saved["net"])
     # saved policies load through the common interfaces
     ego = load_policy(tmp_path)
     assert ego(torch.zeros(5, 7)).shape == (5, 1)
@@ -103,3 +122,12 @@ def test_bad_config_and_cli_errors_name_the_value(tmp_path, capsys):
         load_cotrain_config("cotrain", no_such_key=1)
     assert main(["cotrain", "cotrain", "--set", "rounds=-1", "--out", str(tmp_path)]) == 2
     assert "rounds" in capsys.readouterr().err
+
+
+def test_cli_runs_the_preset_and_reports_the_selection(tmp_path, capsys):
+    sets = [a for k, v in {**TINY, "rounds": 1}.items() for a in ("--set", f"{k}={v}")]
+    out = tmp_path / "run"
+    assert main(["cotrain", "cotrain", *sets, "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "ego selection" in printed and "selected ego vs scripted traffic" in printed
+    assert (out / "policy.pt").exists()
