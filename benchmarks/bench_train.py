@@ -32,20 +32,25 @@ def main() -> None:
         result = train(cfg, out, progress=False)
         total = time.perf_counter() - t0
         timing = json.loads(open(os.path.join(out, "timing.json")).read())
-    print(json.dumps({
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-                   f"python {platform.python_version()}",
-        "preset": cfg.name,
-        "total_sim_steps": result.sim_steps,
-        "updates": result.updates,
-        "update_path": cfg.update_path,
-        "updates_per_s": timing["updates_per_s"],
-        "env_steps_per_s": timing["env_steps_per_s"],
-        "compile_s": timing["compile_s"],
-        "wall_s": timing["wall_s"],
-        "eval_and_plots_s": total - timing["wall_s"],
-        "evaluation": result.evaluation,
-    }, indent=2))
+    print(
+        json.dumps(
+            {
+                "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
+                f"python {platform.python_version()}",
+                "preset": cfg.name,
+                "total_sim_steps": result.sim_steps,
+                "updates": result.updates,
+                "update_path": cfg.update_path,
+                "updates_per_s": timing["updates_per_s"],
+                "env_steps_per_s": timing["env_steps_per_s"],
+                "compile_s": timing["compile_s"],
+                "wall_s": timing["wall_s"],
+                "eval_and_plots_s": total - timing["wall_s"],
+                "evaluation": result.evaluation,
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -110,7 +110,9 @@ def parse_condition(spec: str) -> Condition:
     kind, _, pattern = learned.partition(":")
     if kind != "highway" or not pattern:
         raise ValueError(f"unknown condition {spec!r} (use PRESET or [label=]PRESET+highway:GLOB)")
-    found = tuple(sorted(glob.glob(pattern))) or (pattern,)
+    found = tuple(
+        m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")
+    ) or (pattern,)
     missing = [
         r for r in found if not (r.endswith(".pt") or (Path(r) / "highway_policy.pt").exists())
     ]
@@ -122,6 +124,22 @@ def parse_condition(spec: str) -> Condition:
 def default_conditions() -> list[str]:
     envs = find_preset("default").parent
     return [str(p) for p in sorted(envs.glob("grid_*.toml"), key=_condition_order)]
+
+
+def expand_conditions(specs: Sequence[str]) -> list[str]:
+    """Condition specs with preset-name globs expanded in the grid's order: `grid_*` is every
+    `envs/grid_*.toml`, `grid_dense_*` the dense ones; other specs pass through."""
+    envs = find_preset("default").parent
+    out: list[str] = []
+    for spec in specs:
+        if "*" in spec and "+" not in spec and "/" not in spec:
+            found = sorted(envs.glob(f"{spec.removesuffix('.toml')}.toml"), key=_condition_order)
+            if not found:
+                raise ValueError(f"condition {spec!r} matches no preset in {envs}")
+            out += [str(p) for p in found]
+        else:
+            out.append(spec)
+    return out
 
 
 def _condition_order(p: Path) -> tuple[int, int, str]:
@@ -227,7 +245,7 @@ def _cell(rows: list[dict], policy: str, cond: str, metric: str) -> np.ndarray:
 
 def _fmt_rate(values: np.ndarray) -> str:
     m, lo, hi = aggregate(values, "rate")
-    return f"{100 * m:.0f} [{100 * lo:.0f}–{100 * hi:.0f}]"
+    return f"{100 * m:.1f} [{100 * lo:.1f}–{100 * hi:.1f}]"
 
 
 def _fmt_mean(values: np.ndarray, digits: int = 1) -> str:

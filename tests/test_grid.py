@@ -5,7 +5,7 @@ import csv
 import pytest
 
 from marlmerge.cli import main
-from marlmerge.grid import default_conditions, parse_policy, run_grid
+from marlmerge.grid import default_conditions, expand_conditions, parse_policy, run_grid
 from marlmerge.train import TrainConfig, train
 
 CONDITIONS = ["grid_light_cooperative", "grid_dense_adversarial"]
@@ -78,6 +78,10 @@ def test_policy_specs_are_checked():
     with pytest.raises(ValueError, match="no policy.pt"):
         parse_policy("quadq:/nonexistent/run")
     assert len(default_conditions()) == 12
+    assert expand_conditions(["grid_*", "default"]) == default_conditions() + ["default"]
+    assert len(expand_conditions(["grid_dense_*"])) == 4
+    with pytest.raises(ValueError, match="grid_nothing"):
+        expand_conditions(["grid_nothing_*"])
 
 
 def test_cli_grid(tmp_path, capsys):
