@@ -369,6 +369,12 @@ def frozen_net(
     return net
 
 
+def snapshot_policy(state: dict[str, Tensor], hidden: int, scen: ScenarioConfig) -> HighwayPolicy:
+    """The greedy highway policy of a pool snapshot (weights of the learned adjustment)."""
+    net = frozen_net(state, len(HIGHWAY_FEATURES), hidden, OFFSET_BOUNDS_MPS2)
+    return ResidualHighwayPolicy(net.greedy, scen)
+
+
 # ----------------------------------------------------------------------------------------------
 # Collector policy: both groups at once
 # ----------------------------------------------------------------------------------------------
@@ -448,8 +454,7 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
         raise ValueError(f"no saved highway policy at {path}")
     saved = torch.load(path, weights_only=False)
     scen = from_dict(ScenarioConfig, saved["scenario"])
-    net = frozen_net(saved["net"], len(HIGHWAY_FEATURES), saved["hidden"], OFFSET_BOUNDS_MPS2)
-    return ResidualHighwayPolicy(net.greedy, scen)
+    return snapshot_policy(saved["net"], saved["hidden"], scen)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -631,12 +636,7 @@ def cotrain(
         else:
             env.set_opponent_mix(len(pool), cfg.scripted_fraction if pool else 1.0)
             ego_noise = PhaseNoise(cfg.ego_sigma_cotrain, cfg.ego_sigma_cotrain, 1)
-            opponents = [
-                ResidualHighwayPolicy(
-                    frozen_net(s, len(HIGHWAY_FEATURES), cfg.hidden, hw_bounds).greedy, scen
-                )
-                for s in pool
-            ]
+            opponents = [snapshot_policy(s, cfg.hidden, scen) for s in pool]
         ego_noise.step = hw_noise.step = phase_done
         policy = JointPolicy(functools.partial(ego.act, noise=ego_noise), opponents)
         if resumed_mid_phase:
@@ -801,10 +801,7 @@ def cotrain(
                     cfg.eval_episodes,
                     cfg.eval_seed,
                     cfg.eval_worlds,
-                    highway_policy=ResidualHighwayPolicy(
-                        frozen_net(pool[-1], len(HIGHWAY_FEATURES), cfg.hidden, hw_bounds).greedy,
-                        scen,
-                    ),
+                    highway_policy=snapshot_policy(pool[-1], cfg.hidden, scen),
                 )
         (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1))
     return CoTrainResult(out, total, egos, wall, len(pool), evaluation)
@@ -822,20 +819,11 @@ def select_ego(
     from marlmerge.evaluate import evaluate_policy
 
     opponents: list[HighwayPolicy | None] = [None] + [
-        ResidualHighwayPolicy(
-            frozen_net(s, len(HIGHWAY_FEATURES), cfg.hidden, OFFSET_BOUNDS_MPS2).greedy, scen
-        )
-        for s in pool
+        snapshot_policy(s, cfg.hidden, scen) for s in pool
     ]
-    net = QuadraticQNet(
-        len(EGO_FEATURES),
-        cfg.hidden,
-        action_low=scen.ego.accel_bounds_mps2[0],
-        action_high=scen.ego.accel_bounds_mps2[1],
-    )
     failures: list[list[int]] = []
     for _, weights in candidates:
-        net.load_state_dict(weights)
+        net = frozen_net(weights, len(EGO_FEATURES), cfg.hidden, scen.ego.accel_bounds_mps2)
         row = []
         for opp in opponents:
             r = evaluate_policy(
