@@ -23,8 +23,8 @@ import numpy as np
 
 import marlmerge
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import OUTCOME_NONE, TrafficCore
 from marlmerge.env import EGO_AGENT
+from marlmerge.sim import OUTCOME_NONE, TrafficCore
 
 
 def bench_pettingzoo(seconds: float, control: str, seed: int = 0) -> dict[str, float]:

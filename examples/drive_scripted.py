@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 import marlmerge
-from marlmerge.core import OUTCOME_NAMES
 from marlmerge.env import EGO_AGENT, reward_terms
-from marlmerge.observation import SPEED_SCALE_MPS
 from marlmerge.render import save_png
+from marlmerge.sim import OUTCOME_NAMES
+from marlmerge.spec.observation import SPEED_SCALE_MPS
 
 
 def ego_action(obs: np.ndarray, speed_limit_mps: float) -> np.ndarray:

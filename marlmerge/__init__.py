@@ -1,16 +1,15 @@
 """marlmerge: multi-agent highway on-ramp merging.
 
-A batched traffic simulator (`marlmerge.core`), a PettingZoo ParallelEnv over it
-(`marlmerge.parallel_env`), and learners built on torchrl.
+A batched traffic simulator compiled with Numba (`marlmerge.sim`), a PettingZoo ParallelEnv over
+it (`marlmerge.parallel_env`), torchrl views, and learners built on torchrl.
 """
 
 from marlmerge.config import ScenarioConfig, load_scenario
-from marlmerge.core import TrafficCore
-from marlmerge.drivers import Profile
 from marlmerge.env import ENV_NAME, RampMergeParallelEnv, parallel_env
 from marlmerge.policies import ScriptedHighwayPolicy
+from marlmerge.sim import Profile, TrafficCore
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "ENV_NAME",

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.observation import EGO_FEATURES, EGO_SCALE, feature_index
 from marlmerge.policies import IdmEgoPolicy, constant_speed_action
+from marlmerge.spec.observation import EGO_FEATURES, EGO_SCALE, feature_index
 
 __all__ = ["GapAcceptancePolicy", "IdmEgoPolicy", "constant_speed_action"]
 

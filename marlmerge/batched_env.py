@@ -2,15 +2,17 @@
 
 `BatchedMergeEnv` is a torchrl `EnvBase` with batch size `[B]`. Every world runs its own traffic
 (scripted mainline drivers) and its own sequence of ramp vehicles; the ego of each world is the
-agent. One env step holds the action for `sim.action_repeat` simulator steps, like the PettingZoo
-view. A world whose ego is done is reset by torchrl's partial reset (`"_reset"` mask): the next ramp
-vehicle departs into the same flowing traffic.
+agent. One env step is one `TrafficCore.rollout` (the action held for `sim.action_repeat`
+simulator steps, rewards and observations computed by the core), exactly as in the PettingZoo
+view; this view only reshapes its outputs into tensors. A world whose ego is done is reset by
+torchrl's partial reset (`"_reset"` mask): the next ramp vehicle departs into the same flowing
+traffic.
 
 Keys (all with leading dim B):
-    "observation" [B, 7]   the paper's state, layout in `marlmerge.observation.EGO_FEATURES`
+    "observation" [B, 7]   the paper's state, layout in `marlmerge.spec.observation.EGO_FEATURES`
     "action"      [B, 1]   acceleration in m/s^2, clipped to the ego bounds; NaN raises
     "reward"      [B, 1]   sum of the named terms over the env step
-    "reward_terms", <term> [B, 1] each named term (`marlmerge.reward.EGO_TERMS`)
+    "reward_terms", <term> [B, 1] each named term (`marlmerge.spec.reward.EGO_TERMS`)
     "outcome"     [B, 1]   int64 OUTCOME_* code of the ego (0 while running)
     "ego_time_s"  [B, 1]   time since the ego departed (frozen once its episode ended)
     "done" / "terminated" / "truncated" [B, 1]: terminated on success or collision, truncated when
@@ -19,7 +21,7 @@ Keys (all with leading dim B):
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,19 +32,17 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import (
-    EGO,
+from marlmerge.env import resolve_config
+from marlmerge.sim import (
     OUTCOME_COLLISION,
-    OUTCOME_NONE,
     OUTCOME_SUCCESS,
     OUTCOME_TRUNCATED,
-    EgoGaps,
-    StepEvents,
+    Rollout,
+    Roster,
     TrafficCore,
 )
-from marlmerge.env import resolve_config
-from marlmerge.observation import EGO_FEATURES, ego_observation
-from marlmerge.reward import EGO_TERMS, ego_reward_terms
+from marlmerge.spec.observation import EGO_FEATURES
+from marlmerge.spec.reward import EGO_TERMS
 
 
 class BatchedMergeEnv(EnvBase):
@@ -54,16 +54,18 @@ class BatchedMergeEnv(EnvBase):
         self,
         config: ScenarioConfig | str | Path | None = None,
         num_worlds: int = 16,
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
         overrides: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
     ):
+        """seed: one int for the batch, or one per world (`marlmerge.sim.streams`)."""
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.cfg = resolve_config(config, **(overrides or {}))
         self.num_worlds = num_worlds
         self.core = TrafficCore(self.cfg, batch_size=num_worlds, seed=seed)
-        self.recorder: Callable[[TrafficCore, StepEvents, EgoGaps], None] | None = None
-        """Called after every simulator step (evaluation records trajectories with it)."""
+        self.recorder: Callable[[Rollout], None] | None = None
+        """Called with every env step's `Rollout` (evaluation records trajectories from its
+        per-simulator-step ego trace)."""
         b = num_worlds
         lo, hi = self.cfg.ego.accel_bounds_mps2
         self.observation_spec = Composite(
@@ -93,6 +95,15 @@ class BatchedMergeEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.core.reset(seed=seed)
 
+    def sim_state(self) -> dict[str, Any]:
+        """The simulation's state, for checkpoints (`load_sim_state` continues bit for bit)."""
+        return {"core": self.core.state_dict()}
+
+    def load_sim_state(self, saved: dict[str, Any]) -> None:
+        """Restore `sim_state`; the next full reset keeps every world as it is."""
+        self.core.load_state_dict(saved["core"])
+        self.resume_without_reset()
+
     def resume_without_reset(self) -> None:
         """The next full reset keeps every world as it is (its ego mid-episode included), so a
         collector built on a restored core continues where the saved run stopped."""
@@ -106,77 +117,39 @@ class BatchedMergeEnv(EnvBase):
             mask = np.zeros(self.num_worlds, dtype=bool)
             self._keep_on_reset = False
         self.core.next_ego(mask)
-        zeros = np.zeros(self.num_worlds)
-        out = self._output({t: zeros for t in EGO_TERMS}, np.zeros(self.num_worlds, np.int64))
+        ego_obs, _ = self.core.observe()
+        zeros = np.zeros((self.num_worlds, len(EGO_TERMS)))
+        out = self._output(ego_obs, zeros, np.zeros(self.num_worlds, np.int64))
         del out["reward"]
         return out
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _actions(self, tensordict: TensorDictBase) -> np.ndarray:
+        """The ego accelerations [B] of a step; NaN or infinite values raise, naming the world."""
         action = tensordict.get("action").reshape(self.num_worlds).to(torch.float64).cpu().numpy()
         bad = ~np.isfinite(action)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise ValueError(f"action of world {i} must be finite, got {action[i]}")
-        summed, outcome = self._simulate(action)
-        return self._output(summed, outcome)
+        return action
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self._simulate(self._actions(tensordict))
+        return self._output(out.ego_obs, out.ego_terms, out.ego_outcome)
 
     def _simulate(
-        self,
-        action: np.ndarray,
-        highway_cmd: np.ndarray | None = None,
-        after_step: Callable[[StepEvents, EgoGaps, np.ndarray], None] | None = None,
-    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """Hold the ego accelerations `action` [B] (and the mainline commands `highway_cmd`
-        [B, N], NaN = scripted) for `action_repeat` simulator steps. Returns the ego's reward
-        terms summed over the steps its episode still ran ([B] each) and its outcome [B].
-        `after_step(events, gaps, live)` runs after every simulator step; `live` [B] marks the
-        worlds whose ego was still running before that step."""
-        lo, hi = self.cfg.ego.accel_bounds_mps2
-        action = np.clip(action, lo, hi)
-        core, cfg = self.core, self.cfg
-        st = core.state
-        k = cfg.sim.action_repeat
-        b = self.num_worlds
-        # per simulator step: the ego quantities the reward depends on, and whether it still counts
-        trace = np.zeros((6, k, b))
-        counts = np.zeros((k, b), dtype=bool)
-        outcome = np.zeros(b, dtype=np.int64)
-        for i in range(k):
-            live = outcome == OUTCOME_NONE
-            if not live.any():
-                break
-            ev = core.step(action, highway_cmd)
-            g = core.ego_gaps()
-            if self.recorder is not None:
-                self.recorder(core, ev, g)
-            if after_step is not None:
-                after_step(ev, g, live)
-            trace[:, i] = (
-                st.v_mps[:, EGO],
-                st.x_m[:, EGO],
-                g.d_front_m,
-                g.d_back_m,
-                g.v_back_mps,
-                ev.collided[:, EGO],
-            )
-            counts[i] = live
-            outcome = np.where(live, ev.ego_outcome, outcome)
-        v, x, d_f, d_b, v_b, hit = trace
-        terms = ego_reward_terms(
-            cfg.reward,
-            np.broadcast_to(action, v.shape),
-            v,
-            x,
-            d_f,
-            d_b,
-            v_b,
-            hit > 0.5,
-            core.v_limit,
-        )
-        summed = {t: (terms[t] * counts).sum(axis=0) for t in EGO_TERMS}
-        return summed, outcome
+        self, action: np.ndarray, roster: Roster | None = None, roster_cmd: np.ndarray | None = None
+    ) -> Rollout:
+        """One env step of the core: the ego accelerations `action` [B] (and the roster's
+        commands [B, K], NaN = scripted) held for `sim.action_repeat` simulator steps."""
+        out = self.core.rollout(action, roster=roster, roster_accel=roster_cmd)
+        if self.recorder is not None:
+            self.recorder(out)
+        return out
 
-    def _output(self, terms: dict[str, np.ndarray], outcome: np.ndarray) -> TensorDictBase:
+    def _output(
+        self, ego_obs: np.ndarray, terms: np.ndarray, outcome: np.ndarray
+    ) -> TensorDictBase:
+        """The root keys from a step's observations [B, 7], summed terms [B, 5] and outcomes."""
         b = self.num_worlds
         dev = self.device
 
@@ -185,14 +158,15 @@ class BatchedMergeEnv(EnvBase):
 
         terminated = (outcome == OUTCOME_SUCCESS) | (outcome == OUTCOME_COLLISION)
         truncated = outcome == OUTCOME_TRUNCATED
-        reward = sum(terms[t] for t in EGO_TERMS)
         return TensorDict(
             {
-                "observation": torch.as_tensor(ego_observation(self.core), device=dev),
-                "reward": col(reward),
-                "reward_terms": TensorDict({t: col(terms[t]) for t in EGO_TERMS}, batch_size=[b]),
+                "observation": torch.as_tensor(ego_obs, device=dev),
+                "reward": col(terms.sum(axis=1)),
+                "reward_terms": TensorDict(
+                    {t: col(terms[:, i]) for i, t in enumerate(EGO_TERMS)}, batch_size=[b]
+                ),
                 "outcome": col(outcome, torch.int64),
-                "ego_time_s": col(self.core.state.ego_time_s),
+                "ego_time_s": col(self.core.state.ego_time_s.copy()),
                 "done": col(terminated | truncated, torch.bool),
                 "terminated": col(terminated, torch.bool),
                 "truncated": col(truncated, torch.bool),

@@ -30,9 +30,9 @@ def _ego_rule(rule: str, cfg, rng: np.random.Generator):
 
 def simulate(args: argparse.Namespace) -> int:
     """Drive ramp vehicles through scripted traffic, print what happened, save a frame."""
-    from marlmerge.core import EGO, OUTCOME_NAMES, OUTCOME_NONE
     from marlmerge.env import EGO_AGENT, parallel_env, reward_terms
     from marlmerge.render import render_frame, save_png
+    from marlmerge.sim import EGO, OUTCOME_NAMES, OUTCOME_NONE
 
     env = parallel_env(args.scenario, render_mode="rgb_array", control="ego")
     cfg = env.cfg

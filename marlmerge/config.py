@@ -150,11 +150,12 @@ class TrafficConfig:
     """The random mainline stream entering at the upstream end of each lane."""
 
     flow_vph_per_lane: float = 1200.0
-    """Mean arrival flow per lane (Poisson arrivals), vehicles per hour per lane."""
+    """Mean arrival flow per lane (Poisson arrivals), vehicles per hour per lane. A drawn arrival
+    enters when its own IDM can follow the last vehicle of its lane from the entrance braking no
+    harder than `driver.comfort_brake_mps2`, at its entry speed or else at that vehicle's speed;
+    otherwise it waits in the entrance queue (counted, never dropped)."""
     entry_speed_mps: tuple[float, float] = (24.0, 2.0)
     """Initial speed at the entrance: (mean, std) of a normal, clipped to +-2 std."""
-    max_vehicles: int = 48
-    """Fixed vehicle slots per world, the ego's included. Arrivals beyond this are dropped."""
     warmup_s: float = 20.0
     """A freshly seeded road is filled with steady flow and then simulated this long."""
 
@@ -215,7 +216,7 @@ class RewardConfig:
 
 @dataclass(frozen=True)
 class InteractionConfig:
-    """The interaction term of a learned highway agent's reward (`marlmerge.reward`).
+    """The interaction term of a learned highway agent's reward (`marlmerge.spec.reward`).
 
     A learned mainline driver keeps its own driving reward (comfort, safety to its leader, speed,
     collisions it is to blame for) and gets `sign * term` for ego failures it contributed to:
@@ -427,7 +428,6 @@ def validate(cfg: ScenarioConfig) -> None:
             "sim.highway_agent_accel_bounds_mps2 must be (negative, positive) within the vehicle "
             f"limits, got {s.highway_agent_accel_bounds_mps2}",
         ),
-        (t.max_vehicles >= 2, f"traffic.max_vehicles must be >= 2, got {t.max_vehicles}"),
         (
             t.flow_vph_per_lane >= 0,
             f"traffic.flow_vph_per_lane must be >= 0, got {t.flow_vph_per_lane}",

@@ -59,7 +59,6 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge.config import ScenarioConfig, from_dict, to_dict
-from marlmerge.core import OUTCOME_NAMES
 from marlmerge.learners.baselines_rl import _read_policy_file
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
@@ -69,14 +68,13 @@ from marlmerge.learners.quadq import (
     noisy_greedy_action,
 )
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
-from marlmerge.observation import EGO_FEATURES, HIGHWAY_FEATURES
 from marlmerge.policies import ScriptedHighwayPolicy
-from marlmerge.reward import INTERACTION_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.sim import OUTCOME_NAMES
+from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.spec.reward import INTERACTION_TERMS, LEARNED_HIGHWAY_TERMS
 from marlmerge.train import (
     CsvLog,
-    _core_state,
     _progress,
-    _restore_core,
     load_preset,
     save_checkpoint,
 )
@@ -494,28 +492,6 @@ class CoTrainResult:
     evaluation: dict[str, Any] | None
 
 
-def _env_state(env: MultiAgentMergeEnv) -> dict[str, Any]:
-    return {
-        "core": _core_state(env),
-        "roster": env.roster.copy(),
-        "roster_ids": env.roster_ids.copy(),
-        "mask": env.mask.copy(),
-        "opponent": env.opponent.copy(),
-        "ego_in_lane_s": env.ego_in_lane_s.copy(),
-        "opponent_rng": env.opponent_rng.bit_generator.state,
-    }
-
-
-def _restore_env(env: MultiAgentMergeEnv, saved: dict[str, Any]) -> None:
-    _restore_core(env, saved["core"])
-    env.roster[:] = saved["roster"]
-    env.roster_ids[:] = saved["roster_ids"]
-    env.mask[:] = saved["mask"]
-    env.opponent[:] = saved["opponent"]
-    env.ego_in_lane_s[:] = saved["ego_in_lane_s"]
-    env.opponent_rng.bit_generator.state = saved["opponent_rng"]
-
-
 def cotrain(
     cfg: CoTrainConfig,
     out_dir: str | Path,
@@ -572,7 +548,7 @@ def cotrain(
         egos_kept = ckpt.get("egos_kept", [])  # absent in checkpoints of older versions
         phase_index, phase_done, total = ckpt["phase_index"], ckpt["phase_done"], ckpt["total"]
         egos = ckpt["egos"]
-        _restore_env(env, ckpt["env"])
+        env.load_sim_state(ckpt["env"])
 
     ego_log = CsvLog(out / "egos.csv", EGO_LOG_FIELDS, ckpt["ego_rows"] if ckpt else None)
     hw_log = CsvLog(out / "highway.csv", HIGHWAY_LOG_FIELDS, ckpt["hw_rows"] if ckpt else None)
@@ -602,7 +578,7 @@ def cotrain(
                 "phase_done": phase_done,
                 "total": total,
                 "egos": egos,
-                "env": _env_state(env),
+                "env": env.sim_state(),
                 "ep_sum": ep_sum.copy(),
                 "ep_steps": ep_steps.copy(),
                 "ego_rows": ego_log.rows,

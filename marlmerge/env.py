@@ -19,10 +19,11 @@ Actions
     highway agents keep their lane.
 
 Observations
-    Box float32, scaled; layouts in `marlmerge.observation` (`EGO_FEATURES`, `HIGHWAY_FEATURES`).
+    Box float32, scaled; layouts in `marlmerge.spec.observation` (`EGO_FEATURES`,
+    `HIGHWAY_FEATURES`).
 
 Rewards
-    Sums over the env step of the per-simulator-step terms of `marlmerge.reward`: the ego's
+    Sums over the env step of the per-simulator-step terms of `marlmerge.spec.reward`: the ego's
     `EGO_TERMS`; a highway agent's `LEARNED_HIGHWAY_TERMS` (its own driving terms plus the
     interaction terms of `InteractionConfig`, adversarial by default, `interaction.sign = -1`
     for cooperative agents).
@@ -52,29 +53,12 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from marlmerge.config import ScenarioConfig, load_scenario
-from marlmerge.core import (
-    EGO,
-    OUTCOME_COLLISION,
-    OUTCOME_NONE,
-    OUTCOME_SUCCESS,
-    RIGHT,
-    TrafficCore,
-)
-from marlmerge.observation import (
-    EGO_FEATURES,
-    HIGHWAY_FEATURES,
-    ego_observation,
-    highway_observation,
-)
-from marlmerge.reward import (
-    EGO_TERMS,
-    LEARNED_HIGHWAY_TERMS,
-    ego_reward_terms,
-    highway_agent_step_terms,
-)
+from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
+from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
 EGO_AGENT = "ramp_0"
-ENV_NAME = "marlmerge_ramp_v0"
+ENV_NAME = "marlmerge_ramp_v1"
 
 
 def resolve_config(config: ScenarioConfig | str | Path | None, **overrides: Any) -> ScenarioConfig:
@@ -128,13 +112,11 @@ class RampMergeParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         lo, hi = self.cfg.ego.accel_bounds_mps2
         hw_lo, hw_hi = self.cfg.sim.highway_agent_accel_bounds_mps2
-        self._bounds = {EGO_AGENT: (lo, hi)}
         self._action_spaces = {EGO_AGENT: spaces.Box(lo, hi, (1,), np.float32)}
         self._observation_spaces = {
             EGO_AGENT: spaces.Box(-np.inf, np.inf, (len(EGO_FEATURES),), np.float32)
         }
         for a in self.possible_agents[1:]:
-            self._bounds[a] = hw_lo, hw_hi
             self._action_spaces[a] = spaces.Box(hw_lo, hw_hi, (1,), np.float32)
             self._observation_spaces[a] = spaces.Box(
                 -np.inf, np.inf, (len(HIGHWAY_FEATURES),), np.float32
@@ -142,6 +124,8 @@ class RampMergeParallelEnv(ParallelEnv):
         self.core: TrafficCore | None = None
         self._slots: dict[str, int] = {}
         self._ids: dict[str, int] = {}
+        self._profiles: dict[str, int] = {}
+        self._column: dict[str, int] = {}
         self.metadata = dict(
             self.metadata, render_fps=round(1.0 / (self.cfg.sim.dt_s * self.cfg.sim.action_repeat))
         )
@@ -169,9 +153,9 @@ class RampMergeParallelEnv(ParallelEnv):
         else:
             self.core.reset()
         self._pick_roster()
-        self._ego_in_lane_s = 0.0
         self.agents = [EGO_AGENT] + list(self._slots)
-        obs = self._observations(self.agents)
+        ego_obs, hw_obs = self.core.observe(self._roster)
+        obs = self._observations(self.agents, ego_obs, hw_obs)
         infos = {EGO_AGENT: self._ego_info(dict.fromkeys(EGO_TERMS, 0.0))}
         for a in self._slots:
             infos[a] = self._highway_info(a, dict.fromkeys(LEARNED_HIGHWAY_TERMS, 0.0))
@@ -187,20 +171,23 @@ class RampMergeParallelEnv(ParallelEnv):
         return info
 
     def _highway_info(self, agent: str, terms: dict[str, float]) -> dict[str, float | int]:
-        st = self.core.state  # type: ignore[union-attr]
         info: dict[str, float | int] = {f"reward_{k}": terms[k] for k in LEARNED_HIGHWAY_TERMS}
         info["vehicle_id"] = self._ids[agent]
-        info["profile"] = int(st.profile[0, self._slots[agent]])
+        info["profile"] = self._profiles[agent]
         return info
 
     def _pick_roster(self) -> None:
         core = self.core
         assert core is not None
-        st = core.state
-        slots = core.pick_roster(len(self.possible_agents) - 1)[0]
-        chosen = slots[slots >= 0]
-        self._slots = {f"highway_{i}": int(s) for i, s in enumerate(chosen)}
-        self._ids = {a: int(st.vehicle_id[0, s]) for a, s in self._slots.items()}
+        k = len(self.possible_agents) - 1
+        self._roster = core.make_roster(core.pick_roster(k))
+        slots, ids = self._roster.slots[0], self._roster.ids[0]
+        chosen = [j for j in range(k) if slots[j] >= 0]
+        self._slots = {f"highway_{j}": int(slots[j]) for j in chosen}
+        self._ids = {f"highway_{j}": int(ids[j]) for j in chosen}
+        profile = core.state.profile[0]
+        self._profiles = {a: int(profile[s]) for a, s in self._slots.items()}
+        self._column = {a: j for a, j in zip(self._slots, chosen, strict=True)}
 
     # ------------------------------------------------------------------ step
     def _parse_actions(self, actions: dict[str, Any]) -> dict[str, float]:
@@ -225,8 +212,7 @@ class RampMergeParallelEnv(ParallelEnv):
             val = float(arr.reshape(()))
             if not np.isfinite(val):
                 raise ValueError(f"action of {agent!r} must be finite, got {val}")
-            lo, hi = self._bounds[agent]
-            out[agent] = min(max(val, lo), hi)
+            out[agent] = val  # the core clips to the agent's bounds
         return out
 
     def step(self, actions: dict[str, Any]):
@@ -235,55 +221,28 @@ class RampMergeParallelEnv(ParallelEnv):
         core = self.core
         assert core is not None
         acts = self._parse_actions(actions)
-        cfg = self.cfg
-        st = core.state
-        ego_a = np.array([acts[EGO_AGENT]])
         hw_agents = [a for a in self.agents if a != EGO_AGENT]
-        hw_slots = np.array([self._slots[a] for a in hw_agents], dtype=np.int64)
-        hw_cmd = None
-        if hw_agents:
-            hw_cmd = np.full((1, core.n_slots), np.nan)
-            hw_cmd[0, hw_slots] = [acts[a] for a in hw_agents]
-        hw_terms = {a: dict.fromkeys(LEARNED_HIGHWAY_TERMS, 0.0) for a in hw_agents}
-        gone: set[str] = set()
-        outcome = OUTCOME_NONE
-        trace = []  # per simulator step: the ego quantities its reward depends on
-        for _ in range(cfg.sim.action_repeat):
-            ev = core.step(ego_a, hw_cmd)
-            g = core.ego_gaps()
-            trace.append(
-                (
-                    st.v_mps[0, EGO],
-                    st.x_m[0, EGO],
-                    g.d_front_m[0],
-                    g.d_back_m[0],
-                    g.v_back_mps[0],
-                    ev.collided[0, EGO],
-                )
-            )
-            in_lane = st.lane[0, EGO] == RIGHT
-            self._ego_in_lane_s = self._ego_in_lane_s + cfg.sim.dt_s if in_lane else 0.0
-            if hw_agents:
-                live = [a for a in hw_agents if a not in gone]
-                s = np.array([[self._slots[a] for a in live]], dtype=np.int64)
-                h = highway_agent_step_terms(core, ev, g, s, np.array([self._ego_in_lane_s]))
-                for i, a in enumerate(live):
-                    for k, v in h.items():
-                        hw_terms[a][k] += float(v[0, i])
-                    if not self._still_on_road(a):
-                        gone.add(a)
-                        hw_cmd[0, self._slots[a]] = np.nan
-            outcome = int(ev.ego_outcome[0])
-            if outcome != OUTCOME_NONE:
-                break
-        v, x, d_f, d_b, v_b, hit = np.array(trace).T
-        terms = ego_reward_terms(
-            cfg.reward, np.full(v.shape, ego_a[0]), v, x, d_f, d_b, v_b, hit > 0.5, core.v_limit
+        roster_cmd = None
+        if self._roster.n_agents:
+            roster_cmd = np.full((1, self._roster.n_agents), np.nan)
+            for a in hw_agents:
+                roster_cmd[0, self._column[a]] = acts[a]
+        out = core.rollout(
+            np.array([acts[EGO_AGENT]]), roster=self._roster, roster_accel=roster_cmd
         )
-        ego_terms = {k: float(terms[k].sum()) for k in EGO_TERMS}
+        outcome = int(out.ego_outcome[0])
+        ego_terms = {t: float(out.ego_terms[0, i]) for i, t in enumerate(EGO_TERMS)}
+        hw_terms = {
+            a: {
+                t: float(out.hw_terms[0, self._column[a], i])
+                for i, t in enumerate(LEARNED_HIGHWAY_TERMS)
+            }
+            for a in hw_agents
+        }
+        gone = {a for a in hw_agents if out.left_road[0, self._column[a]]}
 
         agents = list(self.agents)
-        obs = self._observations(agents)
+        obs = self._observations(agents, out.ego_obs, out.hw_obs)
         rewards = {EGO_AGENT: float(sum(ego_terms.values()))}
         rewards.update({a: float(sum(t.values())) for a, t in hw_terms.items()})
         ego_done = outcome != OUTCOME_NONE
@@ -302,21 +261,14 @@ class RampMergeParallelEnv(ParallelEnv):
         self.agents = [a for a in agents if not (terminations[a] or truncations[a])]
         return obs, rewards, terminations, truncations, infos
 
-    def _still_on_road(self, agent: str) -> bool:
-        st = self.core.state  # type: ignore[union-attr]
-        s = self._slots[agent]
-        return bool(st.active[0, s]) and int(st.vehicle_id[0, s]) == self._ids[agent]
-
-    def _observations(self, agents: list[str]) -> dict[str, np.ndarray]:
-        core = self.core
-        assert core is not None
-        obs = {EGO_AGENT: ego_observation(core)[0]}
-        hw = [a for a in agents if a != EGO_AGENT]
-        if hw:
-            slots = np.array([[self._slots[a] for a in hw]], dtype=np.int64)
-            o = highway_observation(core, slots)[0]
-            for i, a in enumerate(hw):
-                obs[a] = o[i]
+    def _observations(
+        self, agents: list[str], ego_obs: np.ndarray, hw_obs: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """Per-agent observations from the core's [1, 7] and [1, K, 12] outputs."""
+        obs = {EGO_AGENT: ego_obs[0]}
+        for a in agents:
+            if a != EGO_AGENT:
+                obs[a] = hw_obs[0, self._column[a]]
         return obs
 
     # ------------------------------------------------------------------ rendering

@@ -1,9 +1,9 @@
 """Evaluation of an ego policy on held-out roads: outcomes, merge time, comfort, safety.
 
-Metrics are computed from what happened, separately from the reward. Each group of
-`worlds` episodes runs on a `BatchedMergeEnv` seeded `seed + group`; an episode is the first ego
-of a freshly seeded world (a road in steady flow), so the list of episodes is fixed by
-(`episodes`, `seed`, `worlds`) and shared by every policy evaluated with them.
+Metrics are computed from what happened, separately from the reward. Episode e is the first ego
+of a fresh world seeded `seed + e` (a road in steady flow; worlds are independent of the batch
+they run in), so the list of episodes is fixed by (`episodes`, `seed`) and shared by every
+policy evaluated with them; `worlds` only sets how many run at once.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import torch
 
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
 from marlmerge.metrics import EpisodeTrajectory, TrajectoryRecorder
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 
 EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
 """observation [B, 7] -> acceleration [B, 1] (m/s^2)."""
@@ -54,20 +54,19 @@ def rollout_first_egos(
     lo, hi = scenario.ego.accel_bounds_mps2
     for g in range(-(-episodes // worlds)):
         nw = min(worlds, episodes - g * worlds)
+        seeds = [seed + g * worlds + i for i in range(nw)]
         if highway_policy is None:
-            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seed + g)
+            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seeds)
         else:
-            env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seed + g)
+            env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seeds)
             env.set_opponent_mix(1, 0.0)
         td = env.reset()
         background0 = env.core.state.background_collisions.copy()
         background = np.zeros(nw, dtype=np.int64)
         recorded: list[tuple[int, EpisodeTrajectory]] = []  # (world, episode)
         if record:
-            recorder = TrajectoryRecorder(env.core)
-            env.recorder = lambda core, ev, gaps, rec=recorder, out=recorded: out.extend(
-                rec.record(ev.ego_outcome)
-            )
+            recorder = TrajectoryRecorder(scenario, nw)
+            env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
         outcome = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
         while (outcome == 0).any():

@@ -8,14 +8,14 @@ agent dimension and a shared policy acts for all its agents; agents that are abs
 fewer than K vehicles) or done (left the road, or towed away after a collision) are masked out.
 
 Group keys (leading dims [B, K]):
-    ("highway", "observation")  [B, K, 12]  layout `marlmerge.observation.HIGHWAY_FEATURES`
+    ("highway", "observation")  [B, K, 12]  layout `marlmerge.spec.observation.HIGHWAY_FEATURES`
                                             (zeros where masked out)
     ("highway", "action")       [B, K, 1]   acceleration in m/s^2, clipped to
                                             `sim.highway_agent_accel_bounds_mps2`;
                                             NaN raises for an agent that acts; masked-out agents
                                             and agents of scripted worlds are ignored
     ("highway", "reward")       [B, K, 1]   own driving terms + interaction terms over the step
-    ("highway", "reward_terms", <term>) [B, K, 1]   `marlmerge.reward.LEARNED_HIGHWAY_TERMS`
+    ("highway", "reward_terms", <term>) [B, K, 1]   `marlmerge.spec.reward.LEARNED_HIGHWAY_TERMS`
     ("highway", "mask")         [B, K]      the agent is on the road and acting
     ("highway", "left_road")    [B, K]      the agent was acting and is gone after this step:
                                             towed away after a collision (terminal for it) or ...
@@ -34,6 +34,7 @@ vehicle departs) and a new roster and opponent are drawn. Opponents are drawn pe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,9 +45,9 @@ from torchrl.data import Bounded, Composite, Unbounded
 
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import EGO, RIGHT, EgoGaps, StepEvents
-from marlmerge.observation import HIGHWAY_FEATURES, highway_observation
-from marlmerge.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, highway_agent_step_terms
+from marlmerge.sim import Roster
+from marlmerge.spec.observation import HIGHWAY_FEATURES
+from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
 GROUP = "highway"
 
@@ -58,7 +59,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         self,
         config: ScenarioConfig | str | Path | None = None,
         num_worlds: int = 16,
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
         overrides: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
     ):
@@ -111,14 +112,27 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
             shape=(b,),
             device=dev,
         )
-        self.roster = np.full((b, k), -1, dtype=np.int64)  # [B, K] slots, -1 absent
-        self.roster_ids = np.full((b, k), -1, dtype=np.int64)  # [B, K] vehicle ids
-        self.mask = np.zeros((b, k), dtype=bool)  # [B, K] on the road and acting
+        self.roster: Roster = self.core.make_roster(np.full((b, k), -1, dtype=np.int64))
+        """[B, K] the highway agents of each world's current merge (the core keeps the mask)."""
         self.opponent = np.full(b, -1, dtype=np.int64)  # [B] -1 scripted
-        self.ego_in_lane_s = np.zeros(b)  # [B] time since the ego joined the right lane
         self.n_opponents = 1
         self.scripted_fraction = 0.0
-        self.opponent_rng = np.random.default_rng(seed)
+        self.opponent_rng = np.random.default_rng(np.random.SeedSequence(seed))
+
+    def sim_state(self) -> dict[str, Any]:
+        state = super().sim_state()
+        state.update(
+            roster=self.roster.rows.copy(),
+            opponent=self.opponent.copy(),
+            opponent_rng=self.opponent_rng.bit_generator.state,
+        )
+        return state
+
+    def load_sim_state(self, saved: dict[str, Any]) -> None:
+        super().load_sim_state(saved)
+        self.roster.rows[:] = saved["roster"]
+        self.opponent[:] = saved["opponent"]
+        self.opponent_rng.bit_generator.state = saved["opponent_rng"]
 
     def set_opponent_mix(self, n_opponents: int, scripted_fraction: float) -> None:
         """From the next departure on, each ego meets scripted highway agents with probability
@@ -136,7 +150,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
     # ------------------------------------------------------------------ torchrl hooks
     def _set_seed(self, seed: int | None) -> None:
         super()._set_seed(seed)
-        self.opponent_rng = np.random.default_rng(seed)
+        self.opponent_rng = np.random.default_rng(np.random.SeedSequence(seed))
         self._new_rosters(np.ones(self.num_worlds, dtype=bool))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
@@ -147,41 +161,31 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         else:
             rows = np.full(self.num_worlds, not keep)
         self._new_rosters(rows)
-        zeros = {t: np.zeros((self.num_worlds, self.n_agents)) for t in LEARNED_HIGHWAY_TERMS}
-        out.update(self._group_output(zeros, np.zeros_like(self.mask), with_reward=False))
+        _, hw_obs = self.core.observe(self.roster)
+        zeros = np.zeros((self.num_worlds, self.n_agents, len(LEARNED_HIGHWAY_TERMS)))
+        no = np.zeros((self.num_worlds, self.n_agents), dtype=bool)
+        out.update(self._group_output(hw_obs, zeros, no, no, with_reward=False))
         return out
+
+    @property
+    def mask(self) -> np.ndarray:
+        """[B, K] bool: the agent is on the road and taking part."""
+        return self.roster.mask
 
     def _new_rosters(self, rows: np.ndarray) -> None:
         """Roster and opponent for the egos that just departed in the worlds `rows` ([B] bool)."""
         if not rows.any():
             return
-        st = self.core.state
-        slots = self.core.pick_roster(self.n_agents)
-        self.roster[rows] = slots[rows]
-        ids = np.take_along_axis(st.vehicle_id, np.maximum(slots, 0), axis=1)
-        self.roster_ids[rows] = np.where(slots >= 0, ids, -1)[rows]
-        self.mask[rows] = slots[rows] >= 0
-        self.ego_in_lane_s[rows] = 0.0
+        fresh = self.core.make_roster(self.core.pick_roster(self.n_agents))
+        self.roster.rows[:, rows] = fresh.rows[:, rows]
         n = int(rows.sum())
         scripted = self.opponent_rng.random(n) < self.scripted_fraction
         pick = self.opponent_rng.integers(0, max(self.n_opponents, 1), n)
         self.opponent[rows] = np.where(scripted, -1, pick)
 
-    def _still_on_road(self) -> np.ndarray:
-        """[B, K]: the roster vehicle still occupies its slot (not exited, not towed away)."""
-        st = self.core.state
-        s = np.maximum(self.roster, 0)
-        active = np.take_along_axis(st.active, s, axis=1)
-        ids = np.take_along_axis(st.vehicle_id, s, axis=1)
-        return active & (ids == self.roster_ids) & (self.roster >= 0)
-
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         b, k = self.num_worlds, self.n_agents
-        action = tensordict.get("action").reshape(b).to(torch.float64).cpu().numpy()
-        bad = ~np.isfinite(action)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"action of world {i} must be finite, got {action[i]}")
+        action = self._actions(tensordict)
         hw = tensordict.get((GROUP, "action"))
         if hw.shape[-3:] != (b, k, 1):
             raise ValueError(f"('highway', 'action') must have shape {(b, k, 1)}, got {hw.shape}")
@@ -193,66 +197,38 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
             raise ValueError(
                 f"action of highway agent {a} in world {w} must be finite, got {hw_action[w, a]}"
             )
-        core, cfg = self.core, self.cfg
-        st = core.state
-        dt = cfg.sim.dt_s
-        rows = np.arange(b)[:, None]
-        cmd = np.full((b, core.n_slots), np.nan)
-        lo, hi = self.highway_bounds_mps2
-        cmd[rows, np.maximum(self.roster, 0)] = np.where(acting, np.clip(hw_action, lo, hi), np.nan)
-        cmd[:, EGO] = np.nan
-        counting = self.mask.copy()  # [B, K] agents whose terms still accumulate
-        terms = {t: np.zeros((b, k)) for t in LEARNED_HIGHWAY_TERMS}
-        exited = np.zeros((b, k), dtype=bool)  # [B, K] gone by driving off the road's end
-
-        def after_step(ev: StepEvents, g: EgoGaps, live: np.ndarray) -> None:
-            self.ego_in_lane_s = np.where(st.lane[:, EGO] == RIGHT, self.ego_in_lane_s + dt, 0.0)
-            slots = np.where(counting & live[:, None], self.roster, -1)
-            step_terms = highway_agent_step_terms(core, ev, g, slots, self.ego_in_lane_s)
-            for t, v in step_terms.items():
-                terms[t] += v
-            gone = counting & ~self._still_on_road()
-            exited[gone & np.take_along_axis(ev.exited, np.maximum(self.roster, 0), axis=1)] = True
-            if gone.any():
-                counting[gone] = False
-                cmd[rows, np.maximum(self.roster, 0)] = np.where(
-                    gone, np.nan, cmd[rows, np.maximum(self.roster, 0)]
-                )
-
-        summed, outcome = self._simulate(action, cmd, after_step)
-        left_road = self.mask & ~counting
-        self.mask = counting
-        out = self._output(summed, outcome)
-        out.update(self._group_output(terms, left_road, with_reward=True, exited=exited))
-        return out
+        out = self._simulate(action, self.roster, np.where(acting, hw_action, np.nan))
+        result = self._output(out.ego_obs, out.ego_terms, out.ego_outcome)
+        result.update(self._group_output(out.hw_obs, out.hw_terms, out.left_road, out.exited, True))
+        return result
 
     def _group_output(
         self,
-        terms: dict[str, np.ndarray],
+        hw_obs: np.ndarray,
+        terms: np.ndarray,
         left_road: np.ndarray,
+        exited: np.ndarray,
         with_reward: bool,
-        exited: np.ndarray | None = None,
     ) -> TensorDict:
+        """The group keys from the core's highway outputs: observations [B, K, 12] (zeros where
+        masked), summed terms [B, K, 8], who left the road and how."""
         b, k, dev = self.num_worlds, self.n_agents, self.device
-        obs = highway_observation(self.core, np.maximum(self.roster, 0))
-        obs[~self.mask] = 0.0
 
         def col(a: np.ndarray) -> torch.Tensor:
             return torch.as_tensor(np.asarray(a).reshape(b, k, 1), dtype=torch.float32, device=dev)
 
         group = {
-            "observation": torch.as_tensor(obs, device=dev),
+            "observation": torch.as_tensor(hw_obs, device=dev),
             "reward_terms": TensorDict(
-                {t: col(terms[t]) for t in LEARNED_HIGHWAY_TERMS}, batch_size=[b, k]
+                {t: col(terms[..., i]) for i, t in enumerate(LEARNED_HIGHWAY_TERMS)},
+                batch_size=[b, k],
             ),
             "mask": torch.as_tensor(self.mask.copy(), device=dev),
             "left_road": torch.as_tensor(left_road, device=dev),
-            "exited": torch.as_tensor(
-                np.zeros_like(left_road) if exited is None else exited, device=dev
-            ),
+            "exited": torch.as_tensor(exited & left_road, device=dev),
         }
         if with_reward:
-            group["reward"] = col(sum(terms[t] for t in LEARNED_HIGHWAY_TERMS))
+            group["reward"] = col(terms.sum(axis=-1))
         return TensorDict(
             {
                 GROUP: TensorDict(group, batch_size=[b, k], device=dev),

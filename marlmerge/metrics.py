@@ -3,7 +3,8 @@
 An `EpisodeTrajectory` is one ego episode at simulator-step resolution; `episode_metrics` turns it
 into a flat dict of named numbers; `aggregate` summarises one metric over many episodes with a 95 %
 interval; `METRICS` is the one table of names, units and directions that reports use.
-`TrajectoryRecorder` collects trajectories from a running `TrafficCore`.
+`TrajectoryRecorder` collects trajectories from the per-simulator-step ego trace of each
+`TrafficCore.rollout`.
 
 Conventions: sample k of a trajectory is at time `t0_s + k * dt_s` after the ego departed (the
 recorder samples after every simulator step, so its `t0_s = dt_s`). Undefined values are `nan`
@@ -19,14 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from marlmerge.core import (
-    EGO,
-    OUTCOME_COLLISION,
-    OUTCOME_NONE,
-    OUTCOME_SUCCESS,
-    OUTCOME_TRUNCATED,
-    TrafficCore,
-)
+from marlmerge.config import ScenarioConfig
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.sim.layout import TR_A, TR_AB, TR_DB, TR_DF, TR_V, TR_VB, TR_VF, TR_X
+from marlmerge.sim.state import Rollout
 
 Z_95 = 1.959963984540054
 """Two-sided 95 % quantile of the standard normal."""
@@ -45,7 +42,7 @@ class EpisodeTrajectory:
     d_back_m: np.ndarray  # bumper gap to the gap-back vehicle (np.inf if none)
     v_back_mps: np.ndarray  # its speed (np.nan if none)
     a_back_mps2: np.ndarray  # acceleration of the current gap-back vehicle (np.nan if none)
-    outcome: int  # marlmerge.core OUTCOME_* code
+    outcome: int  # marlmerge.sim OUTCOME_* code
     zone_start_m: float  # TTC and conflict metrics count from here (merge-zone start, -100 m)
     t0_s: float = 0.0  # time of sample 0 after the ego departed; sample k is at t0_s + k * dt_s
 
@@ -235,77 +232,54 @@ def summarize(per_episode: list[dict[str, float]]) -> dict[str, tuple[float, flo
 
 
 class TrajectoryRecorder:
-    """Collects every world's current ego episode from a `TrafficCore`, one sample per step.
+    """Collects every world's current ego episode, one sample per simulator step, from the ego
+    trace of each `TrafficCore.rollout`:
 
-        rec = TrajectoryRecorder(core)
-        ev = core.step(a)
-        for world, traj in rec.record(ev.ego_outcome):   # before core.next_ego
+        rec = TrajectoryRecorder(cfg, batch_size)
+        out = core.rollout(a)
+        for world, traj in rec.record(out):   # the egos that ended in this call
             ...
 
-    A world is sampled while its ego runs and on the step it ends; a fresh `next_ego` starts a new
-    trajectory. Samples are taken after each step, so `t0_s = dt_s`. Create a new recorder after
-    `core.reset`.
+    A world is sampled while its ego runs, the step it ends included; a world whose ego was not
+    running at the start of a call is not sampled; the next ego starts a new trajectory. Samples
+    are taken after each step, so `t0_s = dt_s`.
     """
 
-    _COLS = ("x", "v", "a", "d_f", "v_f", "d_b", "v_b", "a_b")
+    _COLS = (TR_X, TR_V, TR_A, TR_DF, TR_VF, TR_DB, TR_VB, TR_AB)
 
-    def __init__(self, core: TrafficCore):
-        self.core = core
-        cfg = core.cfg
+    def __init__(self, cfg: ScenarioConfig, batch_size: int):
         self.dt_s = cfg.sim.dt_s
         self.zone_start_m = cfg.road.x_zone_start_m
         self.max_len = int(math.ceil(cfg.ego.max_episode_s / self.dt_s)) + 2
-        self._buf = np.zeros((core.batch_size, self.max_len, len(self._COLS)))
-        self._len = np.zeros(core.batch_size, dtype=np.int64)
+        self._buf = np.zeros((batch_size, self.max_len, len(self._COLS)))
+        self._len = np.zeros(batch_size, dtype=np.int64)
 
-    def record(self, ego_outcome: np.ndarray) -> list[tuple[int, EpisodeTrajectory]]:
-        """Sample the state after a step; `ego_outcome` [B] is that step's `StepEvents.ego_outcome`.
-
-        Returns (world index, trajectory) for each ego that ended in this step.
-        """
-        core = self.core
-        st = core.state
-        ended = np.asarray(ego_outcome) != OUTCOME_NONE
-        live = (st.active[:, EGO] & (st.ego_outcome == OUTCOME_NONE)) | ended
-        rows = np.flatnonzero(live)
-        if rows.size:
-            g = core.ego_gaps()
-            has_f, has_b = g.front >= 0, g.back >= 0
-            all_rows = np.arange(core.batch_size)
-            a_back = np.where(has_b, st.a_mps2[all_rows, np.maximum(g.back, 0)], np.nan)
-            sample = np.stack(
-                [
-                    st.x_m[:, EGO],
-                    st.v_mps[:, EGO],
-                    st.a_mps2[:, EGO],
-                    np.where(has_f, g.d_front_m, np.inf),
-                    np.where(has_f, g.v_front_mps, np.nan),
-                    np.where(has_b, g.d_back_m, np.inf),
-                    np.where(has_b, g.v_back_mps, np.nan),
-                    a_back,
-                ],
-                axis=1,
-            )
-            pos = np.minimum(self._len[rows], self.max_len - 1)
-            self._buf[rows, pos] = sample[rows]
-            self._len[rows] = pos + 1
+    def record(self, out: Rollout) -> list[tuple[int, EpisodeTrajectory]]:
+        """Append the call's samples; returns (world, trajectory) for each ego that ended in it."""
+        cols = list(self._COLS)
+        for b in np.flatnonzero(out.ego_steps):
+            n = int(out.ego_steps[b])
+            pos = int(self._len[b])
+            take = min(n, self.max_len - pos)
+            self._buf[b, pos : pos + take] = out.trace[b, :take][:, cols]
+            self._len[b] = pos + take
         done: list[tuple[int, EpisodeTrajectory]] = []
-        for b in np.flatnonzero(ended):
-            cols = self._buf[b, : self._len[b]].T.copy()
+        for b in np.flatnonzero(out.ego_outcome != OUTCOME_NONE):
+            c = self._buf[b, : self._len[b]].T.copy()
             done.append(
                 (
                     int(b),
                     EpisodeTrajectory(
                         dt_s=self.dt_s,
-                        x_m=cols[0],
-                        v_mps=cols[1],
-                        a_mps2=cols[2],
-                        d_front_m=cols[3],
-                        v_front_mps=cols[4],
-                        d_back_m=cols[5],
-                        v_back_mps=cols[6],
-                        a_back_mps2=cols[7],
-                        outcome=int(ego_outcome[b]),
+                        x_m=c[0],
+                        v_mps=c[1],
+                        a_mps2=c[2],
+                        d_front_m=c[3],
+                        v_front_mps=c[4],
+                        d_back_m=c[5],
+                        v_back_mps=c[6],
+                        a_back_mps2=c[7],
+                        outcome=int(out.ego_outcome[b]),
                         zone_start_m=self.zone_start_m,
                         t0_s=self.dt_s,
                     ),

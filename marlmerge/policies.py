@@ -1,7 +1,7 @@
 """Scripted policies that act through the agent interface (observation in, acceleration out).
 
 `ScriptedHighwayPolicy` drives a highway agent from its observation alone with the same driver
-functions the simulator core uses (`marlmerge.drivers`), so a scripted and a learned policy are
+functions the simulator core uses (`marlmerge.sim.drivers`), so a scripted and a learned policy are
 interchangeable. Inside the core each background vehicle has its own drawn parameters; a policy that
 sees only the observation uses the mean parameters of the `DriverConfig` and treats a leader at the
 edge of the sensing range as free road.
@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.drivers import InteractionView, Profile, idm_accel, profile_accel
-from marlmerge.observation import (
+from marlmerge.sim.drivers import InteractionView, Profile, idm_accel, profile_accel_array
+from marlmerge.spec.observation import (
     EGO_FEATURES,
     EGO_SCALE,
     HIGHWAY_FEATURES,
@@ -56,7 +56,7 @@ class ScriptedHighwayPolicy:
             ego_to_overlap_m=col["ego_to_merge"] + cfg.x_overlap_m,
             ego_pending=(col["ego_present"] > 0.5) & (col["ego_in_lane"] < 0.5),
         )
-        accel, _ = profile_accel(
+        accel, _ = profile_accel_array(
             np.full(gap.shape, int(self.profile)),
             col["speed"],
             gap,

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from marlmerge.config import RoadConfig
-from marlmerge.core import EGO, TrafficCore
-from marlmerge.drivers import Profile
+from marlmerge.sim import EGO, TrafficCore
+from marlmerge.sim.drivers import Profile
 
 RAMP_APPROACH_SLOPE = 0.06
 """Lateral metres the drawn ramp moves away from the highway per metre upstream of the zone."""

@@ -20,7 +20,6 @@ losses with torch optimisers, compiled when `update_path = "compiled"`.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import math
 import os
@@ -38,7 +37,6 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import from_dict, to_dict, tomllib
-from marlmerge.core import OUTCOME_NAMES, TrafficState
 from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy, make_learner
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
@@ -48,7 +46,8 @@ from marlmerge.learners.quadq import (
     QuadraticQNet,
     unpack_rows,
 )
-from marlmerge.reward import EGO_TERMS
+from marlmerge.sim import OUTCOME_NAMES
+from marlmerge.spec.reward import EGO_TERMS
 
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
 
@@ -307,27 +306,6 @@ class EgoTracker:
 # ----------------------------------------------------------------------------------------------
 
 
-def _core_state(env: BatchedMergeEnv) -> dict[str, Any]:
-    core = env.core
-    return {
-        "state": {
-            f.name: getattr(core.state, f.name).copy() for f in dataclasses.fields(TrafficState)
-        },
-        "rng": core.rng.bit_generator.state,
-        "step_count": core.step_count,
-    }
-
-
-def _restore_core(env: BatchedMergeEnv, saved: dict[str, Any]) -> None:
-    core = env.core
-    core.state = TrafficState(**saved["state"])
-    core.rng.bit_generator.state = saved["rng"]
-    core.step_count = saved["step_count"]
-    core.nb = core._neighbours(core.state)
-    core._version += 1
-    env.resume_without_reset()
-
-
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     """Write atomically: a run killed while saving keeps its previous checkpoint."""
     tmp = path.with_suffix(".tmp")
@@ -438,7 +416,7 @@ def train(
             target_updater.load_state_dict(ckpt["target_updater"])
         replay.load_state_dict(ckpt["replay"])
         sample_gen.set_state(ckpt["sample_gen"])
-        _restore_core(env, ckpt["env"])
+        env.load_sim_state(ckpt["env"])
         sim_steps, updates = ckpt["sim_steps"], ckpt["updates"]
         policy.sim_step = sim_steps
 
@@ -495,7 +473,7 @@ def train(
                 "replay": replay.state_dict(),
                 "noise_gen": noise_gen.get_state(),
                 "sample_gen": sample_gen.get_state(),
-                "env": _core_state(env),
+                "env": env.sim_state(),
                 "sim_steps": sim_steps,
                 "updates": updates,
                 "egos": tracker.egos,

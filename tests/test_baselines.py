@@ -5,8 +5,8 @@ import pytest
 
 from marlmerge.baselines import GapAcceptancePolicy, IdmEgoPolicy
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.observation import EGO_SCALE, ego_observation
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
+from marlmerge.spec.observation import EGO_SCALE
 
 COOPERATIVE_LIGHT = {
     "traffic.flow_vph_per_lane": 600.0,
@@ -24,7 +24,7 @@ def first_ego_outcomes(policy, cfg: ScenarioConfig, batch_size: int, seed: int) 
     max_steps = int(cfg.ego.max_episode_s / cfg.sim.dt_s) + 1
     steps = 0
     while (out == OUTCOME_NONE).any() and steps < max_steps:
-        a = np.asarray(policy(ego_observation(core)))[:, 0]
+        a = np.asarray(policy(core.observe()[0]))[:, 0]
         for _ in range(cfg.sim.action_repeat):
             ev = core.step(a)
             steps += 1

@@ -6,7 +6,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from marlmerge.batched_env import BatchedMergeEnv
-from marlmerge.reward import EGO_TERMS
+from marlmerge.spec.reward import EGO_TERMS
 
 
 def _hold(td):

@@ -5,10 +5,10 @@ import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 import marlmerge
-from marlmerge.core import OUTCOME_NAMES
 from marlmerge.env import EGO_AGENT, reward_terms
-from marlmerge.observation import EGO_FEATURES, HIGHWAY_FEATURES
-from marlmerge.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.sim import OUTCOME_NAMES
+from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
 
 def test_parallel_api_test():
@@ -51,7 +51,7 @@ def test_same_seed_same_actions_same_trajectory_bit_for_bit():
 
 def test_agents_spaces_and_metadata():
     env = marlmerge.parallel_env()
-    assert env.metadata["name"].endswith("_v0")
+    assert env.metadata["name"] == "marlmerge_ramp_v1"
     assert env.possible_agents[0] == EGO_AGENT
     assert env.possible_agents[1:] == [f"highway_{i}" for i in range(4)]
     assert env.observation_space(EGO_AGENT).shape == (len(EGO_FEATURES),)

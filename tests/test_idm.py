@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import EGO, LEFT, TrafficCore
-from marlmerge.drivers import idm_accel, idm_equilibrium_gap_m
+from marlmerge.sim import EGO, LEFT, TrafficCore
+from marlmerge.sim.drivers import idm_accel, idm_equilibrium_gap_m
 
 
 @pytest.mark.parametrize("v", [0.0, 10.0, 25.0, 33.0])
@@ -28,22 +28,14 @@ def _two_car_world(v_lead, v0_follow, headway, gap0):
             "road.highway_downstream_m": 3900.0,
             "traffic.flow_vph_per_lane": 0.0,
             "traffic.warmup_s": 0.0,
-            "driver.lane_change_every_steps": 10**9,
+            "driver.lane_change_threshold_mps2": 1.0e6,  # car following only
         }
     )
     core = TrafficCore(cfg, batch_size=1, seed=0)
-    core.remove_ego()
-    st = core.state
-    for slot, x, v, v0 in (
-        (1, -3000.0 + gap0 + cfg.vehicle.length_m, v_lead, v_lead),
-        (2, -3000.0, v_lead, v0_follow),
-    ):
-        st.active[0, slot] = True
-        st.lane[0, slot] = LEFT
-        st.x_m[0, slot], st.v_mps[0, slot], st.v0_mps[0, slot] = x, v, v0
-        st.headway_s[0, slot] = headway
-        st.profile[0, slot] = 0
-    core.nb = core._neighbours(st)
+    core.clear_traffic()
+    lead = core.add_vehicle(0, -3000.0 + gap0 + cfg.vehicle.length_m, v_lead, LEFT, v_lead, headway)
+    follow = core.add_vehicle(0, -3000.0, v_lead, LEFT, v0_follow, headway)
+    assert (lead, follow) == (1, 2)
     return cfg, core
 
 

@@ -15,8 +15,8 @@ def test_core_imports_no_rl_library():
         pkg = types.ModuleType("marlmerge")
         pkg.__path__ = [os.path.dirname(importlib.util.find_spec("marlmerge").origin)]
         sys.modules["marlmerge"] = pkg
-        import marlmerge.config, marlmerge.core, marlmerge.drivers, marlmerge.observation
-        import marlmerge.reward, marlmerge.metrics, marlmerge.baselines, marlmerge.policies
+        import marlmerge.config, marlmerge.sim, marlmerge.spec.observation, marlmerge.spec.reward
+        import marlmerge.metrics, marlmerge.baselines, marlmerge.policies
         bad = [m for m in sys.modules if m.split(".")[0] in {RL_LIBS!r}]
         print(bad)
         sys.exit(1 if bad else 0)

@@ -6,9 +6,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from marlmerge.batched_env import BatchedMergeEnv
-from marlmerge.config import InteractionConfig
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
-from marlmerge.reward import INTERACTION_TERMS, ego_collision_blame, interaction_terms
 
 
 def _const_policy(ego_a, hw_a):
@@ -82,67 +80,3 @@ def test_bad_highway_actions_raise_naming_the_agent():
         env.step(td)
     with pytest.raises(ValueError, match="opponent"):
         env.set_opponent_mix(0, 0.5)
-
-
-# ---------------------------------------------------------------------- the interaction term
-
-CFG = InteractionConfig()
-SLOTS = np.array([[3, 5]])  # one world, two highway agents in slots 3 and 5
-
-
-def _terms(**kw):
-    args = dict(
-        ego_accel_mps2=np.array([0.0]),
-        ego_partner=np.array([-1]),
-        ego_rear=np.array([False]),
-        ego_in_lane_s=np.array([5.0]),
-        ego_truncated=np.array([False]),
-        gap_front=np.array([-1]),
-        gap_back=np.array([-1]),
-    )
-    args.update(kw)
-    cfg = args.pop("cfg", CFG)
-    return interaction_terms(cfg, SLOTS, 0.1, **args)
-
-
-def _all_zero(terms):
-    return all(np.all(terms[t] == 0) for t in INTERACTION_TERMS)
-
-
-def test_interaction_term_is_zero_when_the_ego_fails_for_unrelated_reasons():
-    # the ego crashes into vehicle 9, which is not a highway agent
-    assert _all_zero(_terms(ego_partner=np.array([9]), ego_rear=np.array([True])))
-    # the ego stalls out while the agents are not its gap vehicles
-    assert _all_zero(
-        _terms(ego_truncated=np.array([True]), gap_front=np.array([7]), gap_back=np.array([8]))
-    )
-    # the ego brakes hard behind some other vehicle
-    assert _all_zero(_terms(ego_accel_mps2=np.array([-4.5]), gap_front=np.array([7])))
-    # no failure at all, though agent 3 is right in front of the ego
-    assert _all_zero(_terms(gap_front=np.array([3]), gap_back=np.array([5])))
-
-
-def test_interaction_term_credits_only_the_contributing_agent():
-    t = _terms(ego_partner=np.array([5]), ego_rear=np.array([True]))  # ego rear-ends agent 5
-    assert t["ego_collision"].tolist() == [[0.0, CFG.w_ego_collision]]
-    t = _terms(ego_accel_mps2=np.array([-4.0]), gap_front=np.array([3]))
-    assert t["ego_hard_brake"].tolist() == [[pytest.approx(0.1 * CFG.w_ego_hard_brake_per_s), 0]]
-    t = _terms(ego_truncated=np.array([True]), gap_front=np.array([7]), gap_back=np.array([5]))
-    assert t["ego_stall"].tolist() == [[0.0, CFG.w_ego_stall]]
-    # cooperative: the same terms with the sign flipped
-    coop = InteractionConfig(sign=-1.0)
-    t = _terms(cfg=coop, ego_partner=np.array([5]), ego_rear=np.array([True]))
-    assert t["ego_collision"].tolist() == [[0.0, -CFG.w_ego_collision]]
-
-
-def test_a_rear_end_into_an_established_ego_is_the_agents_own_fault():
-    # agent 3 hits the ego from behind 5 s after the ego joined the lane: no credit, blamed
-    t = _terms(ego_partner=np.array([3]), ego_rear=np.array([False]))
-    assert _all_zero(t)
-    ego_blamed, agent_blamed = ego_collision_blame(
-        CFG, SLOTS, np.array([3]), np.array([False]), np.array([5.0])
-    )
-    assert agent_blamed.tolist() == [[True, False]] and not ego_blamed.any()
-    # ... but if the ego cut in 0.3 s before, the ego is to blame and the agent is credited
-    t = _terms(ego_partner=np.array([3]), ego_rear=np.array([False]), ego_in_lane_s=np.array([0.3]))
-    assert t["ego_collision"].tolist() == [[CFG.w_ego_collision, 0.0]]

@@ -3,7 +3,7 @@
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
+from marlmerge.sim import OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 
 
 def _success_rate(mix, seed=11, episodes=120, batch=40):

@@ -6,13 +6,6 @@ import numpy as np
 import pytest
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import (
-    OUTCOME_COLLISION,
-    OUTCOME_NONE,
-    OUTCOME_SUCCESS,
-    OUTCOME_TRUNCATED,
-    TrafficCore,
-)
 from marlmerge.metrics import (
     METRICS,
     EpisodeTrajectory,
@@ -22,6 +15,13 @@ from marlmerge.metrics import (
     summarize,
     ttc_series,
     wilson_interval,
+)
+from marlmerge.sim import (
+    OUTCOME_COLLISION,
+    OUTCOME_NONE,
+    OUTCOME_SUCCESS,
+    OUTCOME_TRUNCATED,
+    TrafficCore,
 )
 
 DT = 0.1
@@ -252,15 +252,15 @@ def test_aggregate_ignores_nan_and_inf_in_means():
 def test_recorder_collects_whole_episodes_from_the_core():
     cfg = ScenarioConfig()
     core = TrafficCore(cfg, batch_size=4, seed=3)
-    rec = TrajectoryRecorder(core)
+    rec = TrajectoryRecorder(cfg, 4)
     done: dict[int, EpisodeTrajectory] = {}
     steps = 0
-    while len(done) < 4 and steps < 1000:
-        ev = core.step(np.zeros(4))  # hold speed
+    while len(done) < 4 and steps < 300:
+        out = core.rollout(np.zeros(4))  # hold speed
         steps += 1
-        for b, traj in rec.record(ev.ego_outcome):
+        for b, traj in rec.record(out):
             done.setdefault(b, traj)
-        core.next_ego(ev.ego_outcome != OUTCOME_NONE)
+        core.next_ego(out.ego_outcome != OUTCOME_NONE)
     assert len(done) == 4
     for traj in done.values():
         assert traj.outcome != OUTCOME_NONE

@@ -4,8 +4,8 @@ import numpy as np
 
 import marlmerge
 from marlmerge.env import EGO_AGENT
-from marlmerge.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE
 from marlmerge.policies import IdmEgoPolicy, ScriptedHighwayPolicy
+from marlmerge.spec.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE
 
 
 def _highway_obs(**raw):

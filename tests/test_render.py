@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.core import EGO, RIGHT, TrafficCore
 from marlmerge.render import (
     EGO_COLOUR,
     LATERAL_MARGIN_M,
@@ -17,6 +16,7 @@ from marlmerge.render import (
     render_frame,
     save_png,
 )
+from marlmerge.sim import EGO, RIGHT, TrafficCore
 
 PX_PER_M = 4.0
 
@@ -54,9 +54,8 @@ def test_frame_shape_and_dtype(core: TrafficCore, cfg: ScenarioConfig):
 
 @pytest.mark.parametrize("x_ego", [-250.0, -60.0, 30.0])
 def test_ego_drawn_at_its_column(core: TrafficCore, cfg: ScenarioConfig, x_ego: float):
-    core.state.x_m[0, EGO] = x_ego  # front bumper; the body covers [x - length, x]
-    core.state.lane[0, EGO] = RIGHT if x_ego >= cfg.x_overlap_m else -1
-    core.state.collided[0, EGO] = False
+    core.place(0, EGO, x_ego)  # front bumper; the body covers [x - length, x]
+    assert core.state.lane[0, EGO] == (RIGHT if x_ego >= cfg.x_overlap_m else -1)
     img = render_frame(core, world=0)
     x0, _ = default_x_range(core)
     cols = _ego_columns(img)
@@ -81,13 +80,13 @@ def test_vehicles_outside_window_are_clipped(core: TrafficCore, cfg: ScenarioCon
     x0, x1 = default_x_range(core)
     slots = np.flatnonzero(st.active[0])[1:5]
     assert slots.size == 4
-    for s, x in zip(slots, [-1000.0, x0 + 1.0, x1 + 2.0, 3000.0], strict=True):  # off, on edges
-        st.x_m[0, s] = x
-    st.x_m[0, EGO] = x0 + 2.0  # ego straddles the left edge
+    for s, x in zip(slots, [-390.0, x0 + 1.0, x1 + 2.0, 195.0], strict=True):  # off, on edges
+        core.place(0, int(s), x)
+    core.place(0, EGO, x0 + 2.0)  # ego straddles the left edge
     img = render_frame(core, world=0, agent_slots={"highway_0": int(slots[1])})
     cols = _ego_columns(img)
     assert cols.size > 0 and cols.min() == 0
-    st.x_m[0, EGO] = x1 + 50.0  # ego entirely outside
+    core.place(0, EGO, x1 + 50.0)  # ego entirely outside
     img = render_frame(core, world=0)
     assert _ego_columns(img).size == 0
 

@@ -1,7 +1,8 @@
 """The one definition of every observation layout: feature order, units and scaling.
 
-An observation is `raw / scale`, float32. Both the PettingZoo view and the batched torchrl view
-build observations with the functions here, so a layout change happens in one place.
+An observation is `raw / scale`, float32. The simulator's kernel (`marlmerge.sim.kernels`) writes
+the features in the order of these tables; every view returns them as they come, so a layout is
+defined here and computed in one place (a test checks the kernel against these tables).
 
 Missing gap vehicles (none in the right lane within the sensing range) are encoded as a virtual
 vehicle at the edge of the sensing range (`x_ego +- sensing_range_m`) driving at the speed limit.
@@ -14,8 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from marlmerge.core import EGO, RIGHT, TrafficCore
 
 SPEED_SCALE_MPS = 30.0
 POSITION_SCALE_M = 100.0
@@ -72,65 +71,3 @@ HIGHWAY_SCALE = np.array([f.scale for f in HIGHWAY_FEATURES])
 
 def feature_index(features: tuple[Feature, ...], name: str) -> int:
     return [f.name for f in features].index(name)
-
-
-def ego_features_raw(core: TrafficCore) -> np.ndarray:
-    """The ego's raw state in SI units, [B, len(EGO_FEATURES)]."""
-    st = core.state
-    g = core.ego_gaps()
-    b = core.batch_size
-    return np.stack(
-        [
-            st.v_mps[:, EGO],
-            st.x_m[:, EGO],
-            g.v_front_mps,
-            g.x_front_m,
-            g.v_back_mps,
-            g.x_back_m,
-            np.full(b, core.v_limit),
-        ],
-        axis=1,
-    )
-
-
-def ego_observation(core: TrafficCore) -> np.ndarray:
-    """Scaled ego observation, [B, 7] float32."""
-    return (ego_features_raw(core) / EGO_SCALE).astype(np.float32)
-
-
-def highway_features_raw(core: TrafficCore, slots: np.ndarray) -> np.ndarray:
-    """Raw features of the mainline vehicles in `slots` ([B, K] int), [B, K, 12]."""
-    st, nb = core.state, core.nb
-    rng_m = core.cfg.ego.sensing_range_m
-
-    def take(a: np.ndarray) -> np.ndarray:
-        return np.take_along_axis(a, slots, axis=1)
-
-    v = take(st.v_mps)
-    gap = np.minimum(take(nb.gap_m), rng_m)
-    gap_back = np.minimum(take(nb.gap_back_m), rng_m)
-    x_e = st.x_m[:, EGO : EGO + 1]
-    ego_on = st.active[:, EGO : EGO + 1]
-    k = slots.shape[1]
-    cols = [
-        v,
-        take(st.lane).astype(np.float64),
-        gap,
-        take(nb.v_lead_mps),
-        gap_back,
-        take(nb.v_follow_mps),
-        np.broadcast_to(x_e, v.shape) - take(st.x_m),
-        np.broadcast_to(st.v_mps[:, EGO : EGO + 1], v.shape),
-        np.broadcast_to(-x_e, v.shape),
-        np.broadcast_to(
-            (ego_on & (st.lane[:, EGO : EGO + 1] == RIGHT)).astype(np.float64), v.shape
-        ),
-        np.broadcast_to(ego_on.astype(np.float64), v.shape),
-        np.full((core.batch_size, k), core.v_limit),
-    ]
-    return np.stack(cols, axis=-1)
-
-
-def highway_observation(core: TrafficCore, slots: np.ndarray) -> np.ndarray:
-    """Scaled mainline observations, [B, K, 12] float32."""
-    return (highway_features_raw(core, slots) / HIGHWAY_SCALE).astype(np.float32)

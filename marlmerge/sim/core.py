@@ -1,0 +1,577 @@
+"""The batched ramp-merge traffic simulator: B worlds in packed arrays, stepped by compiled kernels.
+
+`TrafficCore` owns its state: the packed arrays of `marlmerge.sim.layout`, the lane lists, the
+drawn arrivals and the per-world generators (`marlmerge.sim.streams`). It imports no RL library.
+Every view (PettingZoo, torchrl, Gymnasium) calls `rollout` (or `step`, one simulator step) and
+only reshapes its outputs; checkpoints go through `state_dict` / `load_state_dict`.
+
+Slot capacity follows the traffic: it starts from the expected number of vehicles on the road
+and grows (doubling) before a call could run out, so no arrival is ever dropped; the kernels
+only visit vehicles on the road, so unused slots cost nothing per step.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+import numba
+import numpy as np
+
+from marlmerge.config import ScenarioConfig, from_dict, to_dict
+from marlmerge.sim import kernels
+from marlmerge.sim import layout as L
+from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
+from marlmerge.sim.state import EgoGaps, Rollout, Roster, StepEvents, TrafficState
+from marlmerge.sim.streams import CHUNK, Streams, world_seed_sequences
+from marlmerge.spec.observation import (
+    EGO_FEATURES,
+    HIGHWAY_FEATURES,
+    POSITION_SCALE_M,
+    SPEED_SCALE_MPS,
+)
+from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
+
+PARALLEL_MIN_WORLDS = 64
+"""From this many worlds on, `rollout` runs worlds in parallel threads (same results)."""
+WARMUP_CHUNK_STEPS = 10
+"""Warm-up runs in calls of this many steps (each call reserves slots for its arrivals)."""
+STATE_DICT_VERSION = 1
+_NO_AGENTS = np.zeros((1 << 16, 0), dtype=bool)
+_NO_AGENTS.flags.writeable = False
+
+_announced: set[str] = set()
+_pending: list[threading.Timer] = []
+
+
+def _announce_compilation(what: str) -> threading.Timer | None:
+    """Say so when a first call takes long: the kernels are being compiled (then cached on
+    disk, so later processes load them). One message, also for nested first calls."""
+    if what in _announced or any(t.is_alive() for t in _pending):
+        return None
+    _announced.add(what)
+    timer = threading.Timer(
+        1.0,
+        lambda: print(
+            "marlmerge: compiling the simulator kernels (first run only; cached on disk)...",
+            file=sys.stderr,
+            flush=True,
+        ),
+    )
+    timer.daemon = True
+    timer.start()
+    _pending[:] = [timer]
+    return timer
+
+
+def initial_slots(cfg: ScenarioConfig) -> int:
+    """Slots per world to start with: the ego plus twice the vehicles expected on both lanes at
+    the configured flow and a slow speed, and room for a few calls' arrivals."""
+    road_len = cfg.road.x_exit_m - cfg.road.x_entrance_m
+    mean_v, std_v = cfg.traffic.entry_speed_mps
+    slow = max(mean_v - 2 * std_v, 5.0)
+    expected = 2 * road_len * cfg.traffic.flow_vph_per_lane / 3600.0 / slow
+    return 1 + 2 * math.ceil(expected) + 16
+
+
+class TrafficCore:
+    """B worlds of the ramp-merge scenario, stepped together.
+
+    Typical use:
+
+        core = TrafficCore(cfg, batch_size=64, seed=0)
+        while True:
+            out = core.rollout(ego_accel)        # ego_accel: [B] m/s^2 (NaN: the ego drives by
+                                                 # IDM), held for sim.action_repeat steps
+            done = out.ego_outcome != OUTCOME_NONE
+            core.next_ego(done)                  # the next ramp vehicle departs in finished worlds
+    """
+
+    def __init__(
+        self,
+        cfg: ScenarioConfig,
+        batch_size: int = 1,
+        seed: int | Sequence[int] | None = None,
+        parallel: bool | None = None,
+    ):
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        self.cfg = cfg
+        self.batch_size = batch_size
+        self.params = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M)
+        self.v_limit = cfg.road.speed_limit_mps
+        self.parallel = batch_size >= PARALLEL_MIN_WORLDS if parallel is None else bool(parallel)
+        self.streams = Streams(cfg, batch_size)
+        self._allocate(initial_slots(cfg), 2 * CHUNK)
+        self._no_roster = Roster(np.zeros((L.RO_ROWS, batch_size, 0), dtype=np.int64))
+        self._no_cmd = np.zeros((batch_size, 0))
+        self._all_worlds = np.ones(batch_size, dtype=bool)
+        self._served_k = -1
+        self.state = TrafficState(self)
+        timer = _announce_compilation("core")
+        self.reset(seed=seed)
+        if timer is not None:
+            timer.cancel()
+
+    # ------------------------------------------------------------------ storage
+    def _allocate(self, n_slots: int, q_len: int) -> None:
+        b = self.batch_size
+        self.vf = np.zeros((b, L.VF_ROWS, n_slots))
+        self.vi = np.zeros((b, L.VI_ROWS, n_slots), dtype=np.int64)
+        self.vi[:, L.VI_LANE] = RAMP
+        self.vi[:, L.VI_ID] = -1
+        self.wf = np.zeros((b, L.WF_ROWS))
+        self.wi = np.zeros((b, L.WI_ROWS), dtype=np.int64)
+        self.lanes = np.full((b, 2, n_slots), -1, dtype=np.int64)
+        self.sched = np.zeros((b, 3, q_len, L.SC_COLS))
+
+    @property
+    def n_slots(self) -> int:
+        """Vehicle slots per world (grows with the traffic)."""
+        return self.vf.shape[2]
+
+    def _grow_slots(self, n_slots: int) -> None:
+        pad = n_slots - self.n_slots
+        self.vf = np.concatenate([self.vf, np.zeros(self.vf.shape[:2] + (pad,))], axis=2)
+        new_vi = np.zeros(self.vi.shape[:2] + (pad,), dtype=np.int64)
+        new_vi[:, L.VI_LANE], new_vi[:, L.VI_ID] = RAMP, -1
+        self.vi = np.concatenate([self.vi, new_vi], axis=2)
+        self.lanes = np.concatenate(
+            [self.lanes, np.full(self.lanes.shape[:2] + (pad,), -1, dtype=np.int64)], axis=2
+        )
+
+    def _grow_rings(self, q_len: int) -> None:
+        """Longer arrival rings, each unrolled so that its head is at index 0."""
+        old_q = self.sched.shape[2]
+        new = np.zeros(self.sched.shape[:2] + (q_len, L.SC_COLS))
+        for stream in range(3):
+            heads = self.wi[:, L.WI_HEAD_RIGHT + stream]
+            idx = (heads[:, None] + np.arange(old_q)[None, :]) % old_q  # [B, old_q]
+            new[:, stream, :old_q] = np.take_along_axis(
+                self.sched[:, stream], idx[:, :, None], axis=1
+            )
+            self.wi[:, L.WI_HEAD_RIGHT + stream] = 0
+        self.sched = new
+
+    # ------------------------------------------------------------------ drawn arrivals
+    def _push(self, b: int, stream: int, rows: np.ndarray) -> None:
+        q_len = self.sched.shape[2]
+        head, count = self.wi[b, L.WI_HEAD_RIGHT + stream], self.wi[b, L.WI_COUNT_RIGHT + stream]
+        idx = (head + count + np.arange(rows.shape[0])) % q_len
+        self.sched[b, stream, idx] = rows
+        self.wi[b, L.WI_COUNT_RIGHT + stream] = count + rows.shape[0]
+
+    def _last_time(self, stream: int) -> np.ndarray:
+        """[B] drawn time of the last arrival of `stream` (-inf when empty)."""
+        q_len = self.sched.shape[2]
+        count = self.wi[:, L.WI_COUNT_RIGHT + stream]
+        last = (self.wi[:, L.WI_HEAD_RIGHT + stream] + count - 1) % q_len
+        t = self.sched[np.arange(self.batch_size), stream, last, L.SC_T]
+        return np.where(count > 0, t, -np.inf)
+
+    def _serve(self, k: int, rows: np.ndarray | None = None) -> None:
+        """Make room and draw ahead so that a call of `k` steps never runs short."""
+        need_slots = int(self.wi[:, L.WI_N_ACTIVE].max()) + 2 * k + 2
+        if need_slots > self.n_slots:
+            self._grow_slots(max(need_slots, 2 * self.n_slots))
+        horizon = self.wf[:, L.WF_T] + (k + 1) * self.cfg.sim.dt_s  # [B]
+        for stream in range(2):
+            while True:
+                short = (self._last_time(stream) <= horizon) | (
+                    self.wi[:, L.WI_COUNT_RIGHT + stream] < 2
+                )
+                if rows is not None:
+                    short &= rows
+                if not short.any():
+                    break
+                self._reserve_ring(stream, short)
+                last = self._last_time(stream)
+                for b in np.flatnonzero(short):
+                    self._push(b, stream, self.streams.arrivals(b, stream, max(last[b], 0.0)))
+        short = self.wi[:, L.WI_COUNT_RIGHT + EGO_STREAM] < 2
+        if rows is not None:
+            short &= rows
+        if short.any():
+            self._reserve_ring(EGO_STREAM, short)
+            for b in np.flatnonzero(short):
+                self._push(b, EGO_STREAM, self.streams.departures(b))
+        self._served_k = k
+
+    def _reserve_ring(self, stream: int, rows: np.ndarray) -> None:
+        count = int(self.wi[rows, L.WI_COUNT_RIGHT + stream].max())
+        if count + CHUNK + 1 > self.sched.shape[2]:
+            self._grow_rings(2 * self.sched.shape[2])
+
+    # ------------------------------------------------------------------ resets
+    def reset(
+        self, seed: int | Sequence[int] | None = None, mask: np.ndarray | None = None
+    ) -> None:
+        """Fresh roads in steady flow for the worlds in `mask` (all if None), each warmed up for
+        `traffic.warmup_s`, then an ego departs.
+
+        seed: an int seeds world i with `SeedSequence(seed, spawn_key=(i,))`; a sequence gives
+        each world its own seed (`marlmerge.sim.streams`). Without a seed a world's generators
+        go on where they were (a first reset without a seed draws fresh entropy)."""
+        rows = np.arange(self.batch_size) if mask is None else np.flatnonzero(mask)
+        if rows.size == 0:
+            return
+        fresh = [b for b in rows if not self.streams.gens[b]]
+        if seed is not None:
+            self.streams.seed(rows, world_seed_sequences(self.batch_size, seed, rows))
+        elif fresh:
+            self.streams.seed(np.array(fresh), world_seed_sequences(1, None, np.array(fresh)))
+        sel = np.zeros(self.batch_size, dtype=bool)
+        sel[rows] = True
+        self._clear(rows)
+        for b in rows:
+            self._place(b, self.streams.fill(b))
+        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        n_warm = int(round(self.cfg.traffic.warmup_s / self.cfg.sim.dt_s))
+        nan = np.full(self.batch_size, np.nan)
+        done = 0
+        while done < n_warm:
+            k = min(WARMUP_CHUNK_STEPS, n_warm - done)
+            self._call(nan, k, self._no_roster, self._no_cmd, sel)
+            done += k
+        self.next_ego(sel)
+
+    def _clear(self, rows: np.ndarray) -> None:
+        self.vf[rows] = 0.0
+        self.vi[rows] = 0
+        self.vi[rows, L.VI_LANE] = RAMP
+        self.vi[rows, L.VI_ID] = -1
+        self.wf[rows] = 0.0
+        self.wi[rows] = 0
+        self.lanes[rows] = -1
+        self.sched[rows] = 0.0
+        self.wi[rows, L.WI_FRONT] = self.wi[rows, L.WI_BACK] = -1
+
+    def _place(self, b: int, vehicles: dict[str, np.ndarray]) -> None:
+        """Put filled-in mainline vehicles into slots 1.. of world `b` (lanes rebuilt after)."""
+        n = vehicles["x_m"].size
+        if n + 1 + 2 * WARMUP_CHUNK_STEPS + 2 > self.n_slots:
+            self._grow_slots(max(n + 1 + 2 * WARMUP_CHUNK_STEPS + 2, 2 * self.n_slots))
+        s = np.arange(1, n + 1)
+        for row, key in (
+            (L.VF_X, "x_m"),
+            (L.VF_V, "v_mps"),
+            (L.VF_V0, "v0_mps"),
+            (L.VF_T, "headway_s"),
+            (L.VF_POL, "politeness"),
+        ):
+            self.vf[b, row, s] = vehicles[key]
+        self.vf[b, L.VF_SINCE_LC, s] = self.cfg.driver.lane_change_cooldown_s
+        self.vi[b, L.VI_LANE, s] = vehicles["lane"].astype(np.int64)
+        self.vi[b, L.VI_PROFILE, s] = vehicles["profile"].astype(np.int64)
+        self.vi[b, L.VI_ACTIVE, s] = 1
+        self.vi[b, L.VI_ID, s] = s - 1
+        self.wi[b, L.WI_NEXT_ID] = n
+
+    def next_ego(self, mask: np.ndarray) -> None:
+        """End the current ego in the worlds of `mask` and send the next one from the ramp start.
+
+        A merged ego stays on the road as a neutral mainline vehicle; after a collision the ego and
+        the vehicles it hit are towed away; a truncated ego is removed."""
+        sel = self._mask(mask)
+        if not sel.any():
+            return
+        self._serve(max(self._served_k, 1), sel)
+        kernels.next_ego(
+            self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched, self.params, sel
+        )
+        self._check_overflow()
+        if self._served_k >= 1:
+            self._serve(self._served_k, sel)
+
+    def remove_ego(self, mask: np.ndarray | None = None) -> None:
+        """Take the ramp vehicle off the road in the worlds of `mask` (all if None): traffic-only
+        worlds, until `next_ego` sends one again."""
+        sel = self._mask(mask)
+        kernels.remove_ego(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+
+    def _mask(self, mask: np.ndarray | None) -> np.ndarray:
+        if mask is None:
+            return np.ones(self.batch_size, dtype=bool)
+        m = np.asarray(mask, dtype=bool).reshape(-1)
+        if m.shape != (self.batch_size,):
+            raise ValueError(f"mask must have shape ({self.batch_size},), got {m.shape}")
+        return m
+
+    # ------------------------------------------------------------------ stepping
+    def rollout(
+        self,
+        ego_accel: np.ndarray,
+        k: int | None = None,
+        roster: Roster | None = None,
+        roster_accel: np.ndarray | None = None,
+    ) -> Rollout:
+        """Hold `ego_accel` ([B] m/s^2, clipped to the ego bounds; NaN: the ego drives by plain
+        IDM and ignores the merge) for `k` simulator steps (default `sim.action_repeat`) in every
+        world. `roster` names highway agents whose terms and observations are computed, and
+        `roster_accel` [B, K] (NaN: scripted) drives them. A world whose ego was running stops at
+        the step its episode ends."""
+        k = self.cfg.sim.action_repeat if k is None else int(k)
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        roster = self._no_roster if roster is None else roster
+        if roster_accel is None:
+            roster_accel = (
+                self._no_cmd
+                if roster.n_agents == 0
+                else np.full((self.batch_size, roster.n_agents), np.nan)
+            )
+        return self._call(np.asarray(ego_accel, dtype=np.float64), k, roster, roster_accel)
+
+    def step(
+        self,
+        ego_accel: np.ndarray,
+        roster: Roster | None = None,
+        roster_accel: np.ndarray | None = None,
+    ) -> StepEvents:
+        """Advance every world by one simulator step (see `rollout`)."""
+        out = self.rollout(ego_accel, 1, roster, roster_accel)
+        flags = self.vi[:, L.VI_FLAGS]
+        return StepEvents(
+            ego_outcome=out.ego_outcome,
+            collided=(flags & L.EV_COLLIDED) != 0,
+            exited=(flags & L.EV_EXITED) != 0,
+            ego_partner=out.ego_partner,
+            ego_rear=out.ego_rear,
+        )
+
+    def _call(
+        self,
+        ego_cmd: np.ndarray,
+        k: int,
+        roster: Roster,
+        roster_cmd: np.ndarray,
+        step_mask: np.ndarray | None = None,
+    ) -> Rollout:
+        b, n_agents = self.batch_size, roster.n_agents
+        if ego_cmd.shape != (b,):
+            ego_cmd = ego_cmd.reshape(b)
+        if roster.rows.shape != (L.RO_ROWS, b, n_agents) or roster_cmd.shape != (b, n_agents):
+            raise ValueError(
+                f"roster of shape {roster.rows.shape} and roster_accel of shape "
+                f"{roster_cmd.shape} do not fit {b} worlds"
+            )
+        if k != self._served_k:
+            self._serve(k)
+        mask_before = roster.rows[L.RO_MASK].copy() if n_agents else None
+        ego_terms = np.empty((b, len(EGO_TERMS)))
+        hw_terms = np.empty((b, n_agents, len(LEARNED_HIGHWAY_TERMS)))
+        trace = np.empty((b, k, L.TR_COLS))
+        ego_obs = np.empty((b, len(EGO_FEATURES)), dtype=np.float32)
+        hw_obs = np.empty((b, n_agents, len(HIGHWAY_FEATURES)), dtype=np.float32)
+        if self.parallel:  # a few chunks of worlds per thread
+            fn, worlds = kernels.rollout_parallel, (min(b, 8 * numba.get_num_threads()),)
+        else:
+            fn, worlds = kernels.rollout, (0, b)
+        timer = _announce_compilation("parallel" if self.parallel else "serial")
+        status = fn(
+            *worlds,
+            self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched, self.params, k,
+            self._all_worlds if step_mask is None else step_mask,
+            ego_cmd, roster.rows, np.ascontiguousarray(roster_cmd, dtype=np.float64),
+            ego_terms, hw_terms, trace, ego_obs, hw_obs,
+        )  # fmt: skip
+        if timer is not None:
+            timer.cancel()
+        if status >= kernels.OVERFLOW:
+            self._check_overflow()
+        if status:
+            self._serve(k)
+        return Rollout(
+            substeps=self.wi[:, L.WI_SUBSTEPS].copy(),
+            ego_steps=self.wi[:, L.WI_EGO_STEPS].copy(),
+            ego_outcome=self.wi[:, L.WI_STEP_OUTCOME].copy(),
+            ego_terms=ego_terms,
+            trace=trace,
+            ego_obs=ego_obs,
+            hw_terms=hw_terms,
+            hw_obs=hw_obs,
+            left_road=(mask_before != 0) & ~roster.mask if n_agents else _NO_AGENTS[:b],
+            exited=roster.exited if n_agents else _NO_AGENTS[:b],
+            ego_partner=self.wi[:, L.WI_EGO_PARTNER].copy(),
+            ego_rear=self.wi[:, L.WI_EGO_REAR] != 0,
+        )
+
+    def _check_overflow(self) -> None:
+        bad = np.flatnonzero(self.wi[:, L.WI_OVERFLOW])
+        if bad.size:
+            raise RuntimeError(
+                f"simulator ran out of vehicle slots or drawn vehicles in world {int(bad[0])} "
+                "(a bug: the core reserves room before every call)"
+            )
+
+    # ------------------------------------------------------------------ agents and views
+    def pick_roster(self, k: int) -> np.ndarray:
+        """Slots of the mainline vehicles taking part in each world's current merge, [B, k]: the
+        right-lane vehicles whose arrival time at the merge point (at current speeds) is closest
+        to the ego's, nearest in time first; -1 where the lane holds fewer than k."""
+        out = np.full((self.batch_size, k), -1, dtype=np.int64)
+        if k > 0:
+            kernels.pick_roster(self.vf, self.vi, self.wi, self.lanes, out)
+        return out
+
+    def make_roster(self, slots: np.ndarray) -> Roster:
+        """A roster of the vehicles now in `slots` ([B, K], -1 none)."""
+        slots = np.asarray(slots, dtype=np.int64)
+        rows = np.zeros((L.RO_ROWS,) + slots.shape, dtype=np.int64)
+        safe = np.maximum(slots, 0)
+        present = (slots > EGO) & (np.take_along_axis(self.vi[:, L.VI_ACTIVE], safe, axis=1) == 1)
+        rows[L.RO_SLOT] = np.where(present, slots, -1)
+        rows[L.RO_ID] = np.where(present, np.take_along_axis(self.vi[:, L.VI_ID], safe, axis=1), -1)
+        rows[L.RO_MASK] = present
+        return Roster(rows)
+
+    def observe(self, roster: Roster | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The current observations: ego [B, 7] and the roster's [B, K, 12] float32."""
+        roster = self._no_roster if roster is None else roster
+        ego_obs = np.empty((self.batch_size, len(EGO_FEATURES)), dtype=np.float32)
+        hw_obs = np.empty((self.batch_size, roster.n_agents, len(HIGHWAY_FEATURES)), np.float32)
+        kernels.observe(self.vf, self.vi, self.wf, self.params, roster.rows, ego_obs, hw_obs)
+        return ego_obs, hw_obs
+
+    def ego_gaps(self) -> EgoGaps:
+        """Gap-front and gap-back vehicles of the ego after the last call (computed there)."""
+        wf, wi = self.wf, self.wi
+        return EgoGaps(
+            front=wi[:, L.WI_FRONT].copy(),
+            back=wi[:, L.WI_BACK].copy(),
+            d_front_m=wf[:, L.WF_DF].copy(),
+            d_back_m=wf[:, L.WF_DB].copy(),
+            x_front_m=wf[:, L.WF_XF].copy(),
+            x_back_m=wf[:, L.WF_XB].copy(),
+            v_front_mps=wf[:, L.WF_VF].copy(),
+            v_back_mps=wf[:, L.WF_VB].copy(),
+        )
+
+    def entrance_stats(self) -> dict[str, np.ndarray]:
+        """Per world [B]: vehicles entered and waiting (both lanes), the longest queue since
+        reset, and the mean entrance delay (s) of the entered vehicles."""
+        st = self.state
+        entered = st.entered
+        return {
+            "entered": entered.copy(),
+            "queue": st.queue.sum(axis=1),
+            "max_queue": st.max_queue.copy(),
+            "mean_delay_s": st.entry_delay_s / np.maximum(entered, 1),
+        }
+
+    # ------------------------------------------------------------------ placing vehicles
+    def add_vehicle(
+        self,
+        world: int,
+        x_m: float,
+        v_mps: float,
+        lane: int,
+        v0_mps: float | None = None,
+        headway_s: float | None = None,
+        profile: int = 0,
+        politeness: float = 0.0,
+    ) -> int:
+        """Put one mainline vehicle on the road of `world` (scenario set-ups, tests, validation);
+        returns its slot."""
+        if lane not in (L.RIGHT, L.LEFT):
+            raise ValueError(f"lane must be RIGHT (0) or LEFT (1), got {lane!r}")
+        if not (self.cfg.road.x_entrance_m <= x_m <= self.cfg.road.x_exit_m) or v_mps < 0:
+            raise ValueError(f"vehicle at x_m={x_m}, v_mps={v_mps} is off the road")
+        if int(self.wi[world, L.WI_N_ACTIVE]) + 2 * max(self._served_k, 1) + 3 > self.n_slots:
+            self._grow_slots(2 * self.n_slots)
+        free = np.flatnonzero(self.vi[world, L.VI_ACTIVE, 1:] == 0)
+        s = int(free[0]) + 1
+        d = self.cfg.driver
+        self.vf[world, :, s] = 0.0
+        self.vf[world, L.VF_X, s], self.vf[world, L.VF_V, s] = x_m, v_mps
+        self.vf[world, L.VF_V0, s] = self.v_limit if v0_mps is None else v0_mps
+        self.vf[world, L.VF_T, s] = np.mean(d.time_headway_s) if headway_s is None else headway_s
+        self.vf[world, L.VF_POL, s] = politeness
+        self.vf[world, L.VF_SINCE_LC, s] = d.lane_change_cooldown_s
+        self.vi[world, :, s] = 0
+        self.vi[world, L.VI_LANE, s], self.vi[world, L.VI_ACTIVE, s] = lane, 1
+        self.vi[world, L.VI_PROFILE, s] = profile
+        self.vi[world, L.VI_ID, s] = self.wi[world, L.WI_NEXT_ID]
+        self.wi[world, L.WI_NEXT_ID] += 1
+        sel = np.zeros(self.batch_size, dtype=bool)
+        sel[world] = True
+        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        return s
+
+    def place(self, world: int, slot: int, x_m: float, v_mps: float | None = None) -> None:
+        """Move the vehicle in `slot` of `world` to `x_m` (and speed `v_mps`), keeping the lane
+        lists in order (scenario set-ups, tests). The ego is on the ramp before its overlap
+        point and in the right lane from there on."""
+        if not self.vi[world, L.VI_ACTIVE, slot]:
+            raise ValueError(f"slot {slot} of world {world} holds no vehicle")
+        self.vf[world, L.VF_X, slot] = x_m
+        if v_mps is not None:
+            self.vf[world, L.VF_V, slot] = v_mps
+        if slot == EGO:
+            self.vi[world, L.VI_LANE, EGO] = L.RIGHT if x_m >= self.cfg.x_overlap_m else RAMP
+        sel = np.zeros(self.batch_size, dtype=bool)
+        sel[world] = True
+        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+
+    def clear_traffic(self, mask: np.ndarray | None = None) -> None:
+        """Empty the roads of `mask` (all if None) and stop their arrivals: scenario set-ups
+        place their own vehicles with `add_vehicle`."""
+        sel = self._mask(mask)
+        self.remove_ego(sel)
+        self.vi[sel, L.VI_ACTIVE, 1:] = 0
+        self.vi[sel, L.VI_LANE, 1:] = RAMP
+        self.sched[sel, :2, :, L.SC_T] = np.inf  # every drawn arrival postponed forever
+        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue bit for bit: arrays, generator states, the config."""
+        return {
+            "version": STATE_DICT_VERSION,
+            "config": to_dict(self.cfg),
+            "batch_size": self.batch_size,
+            "arrays": {
+                name: getattr(self, name).copy()
+                for name in ("vf", "vi", "wf", "wi", "lanes", "sched")
+            },
+            "generators": [[g.bit_generator.state for g in gens] for gens in self.streams.gens],
+            "served_k": self._served_k,
+        }
+
+    def load_state_dict(self, saved: dict[str, Any]) -> None:
+        """Restore a `state_dict` of a core with the same config and batch size."""
+        version = saved.get("version")
+        if version != STATE_DICT_VERSION:
+            raise ValueError(
+                f"core state version {version!r} is not {STATE_DICT_VERSION} (saved by another "
+                "version of marlmerge)"
+            )
+        cfg = from_dict(ScenarioConfig, saved["config"])
+        if cfg != self.cfg:
+            raise ValueError("core state was saved with a different scenario config")
+        if saved["batch_size"] != self.batch_size:
+            raise ValueError(
+                f"core state has {saved['batch_size']} worlds, this core {self.batch_size}"
+            )
+        arrays = saved["arrays"]
+        for name in ("vf", "vi", "wf", "wi", "lanes", "sched"):
+            a = np.asarray(arrays[name])
+            if a.ndim != getattr(self, name).ndim:
+                raise ValueError(f"core state: array {name!r} has shape {a.shape}")
+            setattr(self, name, a.copy())
+        self.streams.seed(
+            np.arange(self.batch_size),
+            [np.random.SeedSequence(0) for _ in range(self.batch_size)],
+        )
+        for gens, states in zip(self.streams.gens, saved["generators"], strict=True):
+            for g, s in zip(gens, states, strict=True):
+                g.bit_generator.state = s
+        self._served_k = int(saved["served_k"])
+
+    @property
+    def egos_running(self) -> np.ndarray:
+        """[B] bool: the world's ego is on the road and its episode has not ended."""
+        return (self.vi[:, L.VI_ACTIVE, EGO] == 1) & (self.wi[:, L.WI_OUTCOME] == OUTCOME_NONE)

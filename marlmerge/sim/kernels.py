@@ -1,0 +1,618 @@
+"""The compiled calls of the core: what one env step needs, and the ego's and roster's life cycle.
+
+`rollout` holds the ego commands for `k` simulator steps (`marlmerge.sim.step.substep`) in every
+world and, after each step, adds up the named reward terms of the ego and of the highway agents
+(`marlmerge.spec.reward`) and records the ego's trace; at the end it writes the observations
+(`marlmerge.spec.observation` order). A world whose ego was running stops stepping within the
+call once its ego's episode ends, so one world of a batch and a single world step alike.
+`rollout_parallel` is the same over worlds in parallel threads (worlds are independent).
+
+The drivers return how many worlds need the Python side before another call of the same `k`
+(more slots, more drawn arrivals or ego departures): the core serves them between calls.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import prange
+
+from marlmerge.sim import lanes as ll
+from marlmerge.sim.jit import kernel
+from marlmerge.sim.layout import (
+    EGO,
+    EGO_STREAM,
+    EV_EXITED,
+    EV_HIT,
+    NEUTRAL,
+    OUTCOME_NONE,
+    OUTCOME_SUCCESS,
+    OUTCOME_TRUNCATED,
+    P_DT,
+    P_EGO_T,
+    P_LC_COOLDOWN,
+    P_POSITION_SCALE,
+    P_SENSING,
+    P_SPEED_SCALE,
+    P_V_LIMIT,
+    P_X_RAMP_START,
+    RAMP,
+    RIGHT,
+    RO_EXITED,
+    RO_ID,
+    RO_MASK,
+    RO_SLOT,
+    SC_POL,
+    SC_T,
+    SC_T_HW,
+    SC_V,
+    SC_V0,
+    TR_A,
+    TR_AB,
+    TR_DB,
+    TR_DF,
+    TR_HIT,
+    TR_V,
+    TR_VB,
+    TR_VF,
+    TR_X,
+    VF_A,
+    VF_AGE,
+    VF_GAP,
+    VF_POL,
+    VF_SINCE_LC,
+    VF_T,
+    VF_V,
+    VF_V0,
+    VF_VLEAD,
+    VF_X,
+    VI_ACTIVE,
+    VI_COLLIDED,
+    VI_FLAGS,
+    VI_FOLLOWER,
+    VI_ID,
+    VI_LANE,
+    VI_PROFILE,
+    WF_AFTER_POL,
+    WF_AFTER_T,
+    WF_AFTER_V0,
+    WF_DB,
+    WF_DF,
+    WF_EGO_CMD,
+    WF_EGO_IN_LANE,
+    WF_EGO_STALL,
+    WF_EGO_T,
+    WF_T,
+    WF_VB,
+    WF_VF,
+    WF_XB,
+    WF_XF,
+    WI_BACK,
+    WI_COUNT_RIGHT,
+    WI_EGO_COUNT,
+    WI_EGO_PARTNER,
+    WI_EGO_REAR,
+    WI_EGO_STEPS,
+    WI_FRONT,
+    WI_HEAD_RIGHT,
+    WI_N_ACTIVE,
+    WI_N_RIGHT,
+    WI_NEXT_ID,
+    WI_OUTCOME,
+    WI_OVERFLOW,
+    WI_STEP_OUTCOME,
+    WI_SUBSTEPS,
+)
+from marlmerge.sim.step import deactivate, ego_gaps, free_slot, neighbours, substep
+from marlmerge.spec.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
+
+NAN = math.nan
+INF = math.inf
+OVERFLOW = 1 << 32
+"""Added to a driver's return value for each world that ran out of slots or drawn vehicles."""
+
+
+# ----------------------------------------------------------------------------------------------
+# After each simulator step: the ego's trace and terms, the highway agents' terms
+# ----------------------------------------------------------------------------------------------
+
+
+@kernel
+def _trace_row(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    b: int,
+    trace: np.ndarray,
+    i: int,
+) -> None:
+    """The ego after a step, with the metrics' conventions (no gap vehicle: inf gap, nan speed)."""
+    front, back = wi[b, WI_FRONT], wi[b, WI_BACK]
+    trace[b, i, TR_X] = vf[b, VF_X, EGO]
+    trace[b, i, TR_V] = vf[b, VF_V, EGO]
+    trace[b, i, TR_A] = vf[b, VF_A, EGO]
+    trace[b, i, TR_DF] = wf[b, WF_DF] if front >= 0 else INF
+    trace[b, i, TR_VF] = wf[b, WF_VF] if front >= 0 else NAN
+    trace[b, i, TR_DB] = wf[b, WF_DB] if back >= 0 else INF
+    trace[b, i, TR_VB] = wf[b, WF_VB] if back >= 0 else NAN
+    trace[b, i, TR_AB] = vf[b, VF_A, back] if back >= 0 else NAN
+    trace[b, i, TR_HIT] = 1.0 if vi[b, VI_FLAGS, EGO] & EV_HIT else 0.0
+
+
+@kernel
+def _roster_step(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    roster: np.ndarray,
+    hw_terms: np.ndarray,
+    live: bool,
+) -> None:
+    """Add the step's terms of every counting highway agent (while the ego runs), then let go of
+    the agents that left the road: towed away after a collision, or off the downstream end
+    (`RO_EXITED`)."""
+    x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    close_f, close_b = ego_closeness(p, x_e, v_e, wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB])
+    blamed = ego_to_blame(p, wi[b, WI_EGO_REAR] == 1, wf[b, WF_EGO_IN_LANE])
+    truncated = wi[b, WI_STEP_OUTCOME] == OUTCOME_TRUNCATED
+    for j in range(roster.shape[2]):
+        s = roster[RO_SLOT, b, j]
+        if roster[RO_MASK, b, j] == 0 or s <= EGO:
+            continue
+        same = vi[b, VI_ID, s] == roster[RO_ID, b, j]
+        if live and same:
+            add_highway_terms(
+                p,
+                hw_terms,
+                b,
+                j,
+                vf[b, VF_A, s],
+                vf[b, VF_V, s],
+                vf[b, VF_GAP, s],
+                (vi[b, VI_FLAGS, s] & EV_HIT) != 0,
+                s == wi[b, WI_EGO_PARTNER],
+                blamed,
+                s == wi[b, WI_FRONT],
+                s == wi[b, WI_BACK],
+                vf[b, VF_A, EGO],
+                truncated,
+                close_f,
+                close_b,
+            )
+        if not same or vi[b, VI_ACTIVE, s] == 0:
+            roster[RO_MASK, b, j] = 0
+            # a slot freed at the exit can be refilled by an arrival in the same step; a towed
+            # wreck's slot cannot (towing comes after the arrivals)
+            if not same or vi[b, VI_FLAGS, s] & EV_EXITED:
+                roster[RO_EXITED, b, j] = 1
+
+
+# ----------------------------------------------------------------------------------------------
+# Observations
+# ----------------------------------------------------------------------------------------------
+
+
+@kernel
+def observe_world(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    roster: np.ndarray,
+    ego_obs: np.ndarray,
+    hw_obs: np.ndarray,
+) -> None:
+    """Scaled observations of world `b`: the ego's `EGO_FEATURES` into ego_obs[b] and each
+    counting roster agent's `HIGHWAY_FEATURES` into hw_obs[b, j] (zeros where not counting)."""
+    ss, ps = p[P_SPEED_SCALE], p[P_POSITION_SCALE]
+    v_limit, rng = p[P_V_LIMIT], p[P_SENSING]
+    x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    ego_obs[b, 0], ego_obs[b, 1] = v_e / ss, x_e / ps
+    ego_obs[b, 2], ego_obs[b, 3] = wf[b, WF_VF] / ss, wf[b, WF_XF] / ps
+    ego_obs[b, 4], ego_obs[b, 5] = wf[b, WF_VB] / ss, wf[b, WF_XB] / ps
+    ego_obs[b, 6] = v_limit / ss
+    ego_on = vi[b, VI_ACTIVE, EGO] == 1
+    ego_in_lane = 1.0 if ego_on and vi[b, VI_LANE, EGO] == RIGHT else 0.0
+    for j in range(roster.shape[2]):
+        s = roster[RO_SLOT, b, j]
+        if roster[RO_MASK, b, j] == 0 or s <= EGO:
+            for c in range(hw_obs.shape[2]):
+                hw_obs[b, j, c] = 0.0
+            continue
+        v = vf[b, VF_V, s]
+        f = vi[b, VI_FOLLOWER, s]
+        gap_back = vf[b, VF_GAP, f] if f >= 0 else INF
+        hw_obs[b, j, 0], hw_obs[b, j, 1] = v / ss, float(vi[b, VI_LANE, s])
+        hw_obs[b, j, 2], hw_obs[b, j, 3] = min(vf[b, VF_GAP, s], rng) / ps, vf[b, VF_VLEAD, s] / ss
+        hw_obs[b, j, 4], hw_obs[b, j, 5] = (
+            min(gap_back, rng) / ps,
+            (vf[b, VF_V, f] if f >= 0 else v) / ss,
+        )
+        hw_obs[b, j, 6], hw_obs[b, j, 7] = (x_e - vf[b, VF_X, s]) / ps, v_e / ss
+        hw_obs[b, j, 8], hw_obs[b, j, 9] = -x_e / ps, ego_in_lane
+        hw_obs[b, j, 10], hw_obs[b, j, 11] = 1.0 if ego_on else 0.0, v_limit / ss
+
+
+# ----------------------------------------------------------------------------------------------
+# One env step of one world, and the drivers over worlds
+# ----------------------------------------------------------------------------------------------
+
+
+@kernel
+def _needs_service(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    sched: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    k: int,
+) -> int:
+    """1 if world `b` needs the Python side before another call of `k` steps: too few free slots
+    (two arrivals a step, and a merged ego), drawn arrivals ending within the horizon, or no
+    drawn ego departure left."""
+    if wi[b, WI_N_ACTIVE] + 2 * k + 2 > vi.shape[2]:
+        return 1
+    q_len = sched.shape[2]
+    horizon = wf[b, WF_T] + (k + 1) * p[P_DT]
+    for stream in range(2):
+        count = wi[b, WI_COUNT_RIGHT + stream]
+        last = (wi[b, WI_HEAD_RIGHT + stream] + count - 1) % q_len
+        if count == 0 or count + 1 >= q_len or sched[b, stream, last, SC_T] <= horizon:
+            return 1
+    return 1 if wi[b, WI_COUNT_RIGHT + EGO_STREAM] < 1 else 0
+
+
+@kernel
+def rollout_world(
+    b: int,
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    sched: np.ndarray,
+    p: np.ndarray,
+    k: int,
+    step_mask: np.ndarray,
+    ego_cmd: np.ndarray,
+    roster: np.ndarray,
+    roster_cmd: np.ndarray,
+    ego_terms: np.ndarray,
+    hw_terms: np.ndarray,
+    trace: np.ndarray,
+    ego_obs: np.ndarray,
+    hw_obs: np.ndarray,
+) -> int:
+    """Up to `k` simulator steps of world `b` with the ego command ego_cmd[b] (see the module
+    docstring). Outputs: ego_terms[b] [5], hw_terms[b] [K, 8], trace[b, :k] [TR_COLS], the
+    observations, and per world `WI_SUBSTEPS`, the outcome reached (`WI_STEP_OUTCOME`) with the
+    ego's collision partner. Returns `_needs_service`, plus `OVERFLOW` if the world overflowed."""
+    for s in range(vi.shape[2]):
+        vi[b, VI_FLAGS, s] = 0
+    for c in range(ego_terms.shape[1]):
+        ego_terms[b, c] = 0.0
+    for j in range(roster.shape[2]):
+        roster[RO_EXITED, b, j] = 0
+        for c in range(hw_terms.shape[2]):
+            hw_terms[b, j, c] = 0.0
+    outcome, partner, rear, steps, ego_steps = OUTCOME_NONE, -1, 0, 0, 0
+    if step_mask[b]:
+        started = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
+        for i in range(k):
+            live = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
+            if started and not live:
+                break
+            ego_hit = substep(vf, vi, wf, wi, lanes, sched, b, p, ego_cmd[b], roster, roster_cmd)
+            _trace_row(vf, vi, wf, wi, b, trace, i)
+            if live:
+                ego_steps += 1
+                add_ego_terms(
+                    p, ego_terms, b, wf[b, WF_EGO_CMD], vf[b, VF_X, EGO], vf[b, VF_V, EGO],
+                    wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB], ego_hit,
+                )  # fmt: skip
+            _roster_step(vf, vi, wf, wi, b, p, roster, hw_terms, live)
+            if wi[b, WI_STEP_OUTCOME] != OUTCOME_NONE:
+                outcome = wi[b, WI_STEP_OUTCOME]
+                partner, rear = wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR]
+            steps = i + 1
+    wi[b, WI_STEP_OUTCOME], wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR] = outcome, partner, rear
+    wi[b, WI_SUBSTEPS], wi[b, WI_EGO_STEPS] = steps, ego_steps
+    observe_world(vf, vi, wf, b, p, roster, ego_obs, hw_obs)
+    return _needs_service(vf, vi, wf, wi, sched, b, p, k) + OVERFLOW * wi[b, WI_OVERFLOW]
+
+
+@kernel
+def rollout(
+    lo: int,
+    hi: int,
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    sched: np.ndarray,
+    p: np.ndarray,
+    k: int,
+    step_mask: np.ndarray,
+    ego_cmd: np.ndarray,
+    roster: np.ndarray,
+    roster_cmd: np.ndarray,
+    ego_terms: np.ndarray,
+    hw_terms: np.ndarray,
+    trace: np.ndarray,
+    ego_obs: np.ndarray,
+    hw_obs: np.ndarray,
+) -> int:
+    """`rollout_world` for the worlds lo..hi-1, one after the other. Returns the sum of their
+    statuses (how many need service, plus `OVERFLOW` for each that overflowed)."""
+    status = 0
+    for b in range(lo, hi):
+        status += rollout_world(
+            b,
+            vf,
+            vi,
+            wf,
+            wi,
+            lanes,
+            sched,
+            p,
+            k,
+            step_mask,
+            ego_cmd,
+            roster,
+            roster_cmd,
+            ego_terms,
+            hw_terms,
+            trace,
+            ego_obs,
+            hw_obs,
+        )
+    return status
+
+
+@kernel(parallel=True)
+def rollout_parallel(
+    n_chunks: int,
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    drawn: np.ndarray,
+    p: np.ndarray,
+    k: int,
+    step_mask: np.ndarray,
+    ego_cmd: np.ndarray,
+    roster: np.ndarray,
+    roster_cmd: np.ndarray,
+    ego_terms: np.ndarray,
+    hw_terms: np.ndarray,
+    trace: np.ndarray,
+    ego_obs: np.ndarray,
+    hw_obs: np.ndarray,
+) -> int:
+    """`rollout` over `n_chunks` equal chunks of the worlds in parallel threads: the same
+    results as one serial call, since worlds are independent. (`drawn` is `sched`: Numba's
+    parallel lowering reserves that name.)"""
+    n = vf.shape[0]
+    status = 0
+    for c in prange(n_chunks):
+        status += rollout(
+            (c * n) // n_chunks,
+            ((c + 1) * n) // n_chunks,
+            vf,
+            vi,
+            wf,
+            wi,
+            lanes,
+            drawn,
+            p,
+            k,
+            step_mask,
+            ego_cmd,
+            roster,
+            roster_cmd,
+            ego_terms,
+            hw_terms,
+            trace,
+            ego_obs,
+            hw_obs,
+        )
+    return status
+
+
+@kernel
+def observe(vf, vi, wf, p, roster, ego_obs, hw_obs) -> None:  # fmt: skip
+    """`observe_world` for every world."""
+    for b in range(vf.shape[0]):
+        observe_world(vf, vi, wf, b, p, roster, ego_obs, hw_obs)
+
+
+# ----------------------------------------------------------------------------------------------
+# The ego's life cycle, the roster, and rebuilding the lane lists
+# ----------------------------------------------------------------------------------------------
+
+
+@kernel
+def _tow_wrecks(vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int) -> None:
+    for s in range(1, vi.shape[2]):
+        if vi[b, VI_COLLIDED, s] == 1:
+            deactivate(vi, wi, lanes, b, s)
+            vi[b, VI_COLLIDED, s] = 0
+
+
+@kernel
+def _keep_merged_ego(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    p: np.ndarray,
+) -> None:
+    """A merged ego stays on the road as a neutral mainline driver in a free slot, in its place."""
+    s = free_slot(vi, b)
+    if s < 0:
+        wi[b, WI_OVERFLOW] = 1
+        return
+    vf[b, VF_X, s], vf[b, VF_V, s], vf[b, VF_A, s] = vf[b, VF_X, EGO], vf[b, VF_V, EGO], 0.0
+    vf[b, VF_V0, s], vf[b, VF_T, s] = wf[b, WF_AFTER_V0], wf[b, WF_AFTER_T]
+    vf[b, VF_POL, s] = wf[b, WF_AFTER_POL]
+    vf[b, VF_SINCE_LC, s], vf[b, VF_AGE, s] = p[P_LC_COOLDOWN], vf[b, VF_AGE, EGO]
+    vi[b, VI_LANE, s], vi[b, VI_ACTIVE, s], vi[b, VI_PROFILE, s] = RIGHT, 1, NEUTRAL
+    vi[b, VI_ID, s], vi[b, VI_COLLIDED, s], vi[b, VI_FLAGS, s] = wi[b, WI_NEXT_ID], 0, 0
+    wi[b, WI_NEXT_ID] += 1
+    wi[b, WI_N_ACTIVE] += 1
+    ll.replace(lanes, wi, b, RIGHT, EGO, s)
+    vi[b, VI_LANE, EGO] = RAMP  # no longer in a lane list
+
+
+@kernel
+def next_ego_world(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    sched: np.ndarray,
+    b: int,
+    p: np.ndarray,
+) -> None:
+    """End the current ego of world `b` and send the next drawn one from the ramp start.
+
+    A merged ego stays on the road; after a collision the ego and the vehicles it hit are towed
+    away; a truncated ego is removed."""
+    if vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_SUCCESS:
+        _keep_merged_ego(vf, vi, wf, wi, lanes, b, p)
+    _tow_wrecks(vi, wi, lanes, b)
+    deactivate(vi, wi, lanes, b, EGO)
+    vi[b, VI_COLLIDED, EGO] = 0
+    stream = EGO_STREAM
+    if wi[b, WI_COUNT_RIGHT + stream] < 1:
+        wi[b, WI_OVERFLOW] = 1
+        return
+    head = wi[b, WI_HEAD_RIGHT + stream]
+    wi[b, WI_HEAD_RIGHT + stream] = (head + 1) % sched.shape[2]
+    wi[b, WI_COUNT_RIGHT + stream] -= 1
+    vf[b, VF_X, EGO], vf[b, VF_V, EGO], vf[b, VF_A, EGO] = (
+        p[P_X_RAMP_START],
+        sched[b, stream, head, SC_V],
+        0.0,
+    )
+    vf[b, VF_V0, EGO], vf[b, VF_T, EGO], vf[b, VF_POL, EGO] = p[P_V_LIMIT], p[P_EGO_T], 0.0
+    vf[b, VF_SINCE_LC, EGO], vf[b, VF_AGE, EGO] = 0.0, 0.0
+    wf[b, WF_AFTER_V0], wf[b, WF_AFTER_T], wf[b, WF_AFTER_POL] = (
+        sched[b, stream, head, SC_V0],
+        sched[b, stream, head, SC_T_HW],
+        sched[b, stream, head, SC_POL],
+    )
+    vi[b, VI_LANE, EGO], vi[b, VI_ACTIVE, EGO], vi[b, VI_PROFILE, EGO] = RAMP, 1, NEUTRAL
+    vi[b, VI_ID, EGO], vi[b, VI_FLAGS, EGO] = wi[b, WI_NEXT_ID], 0
+    wi[b, WI_NEXT_ID] += 1
+    wi[b, WI_N_ACTIVE] += 1
+    wf[b, WF_EGO_T], wf[b, WF_EGO_STALL], wf[b, WF_EGO_IN_LANE] = 0.0, 0.0, 0.0
+    wi[b, WI_OUTCOME] = OUTCOME_NONE
+    wi[b, WI_EGO_COUNT] += 1
+    neighbours(vf, vi, wi, lanes, b, p)
+    ego_gaps(vf, vi, wf, wi, lanes, b, p)
+
+
+@kernel
+def remove_ego_world(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    p: np.ndarray,
+) -> None:
+    """Take the ramp vehicle (and any wreck it left) off the road: a traffic-only world."""
+    _tow_wrecks(vi, wi, lanes, b)
+    deactivate(vi, wi, lanes, b, EGO)
+    vi[b, VI_COLLIDED, EGO] = 0
+    wi[b, WI_OUTCOME] = OUTCOME_NONE
+    neighbours(vf, vi, wi, lanes, b, p)
+    ego_gaps(vf, vi, wf, wi, lanes, b, p)
+
+
+@kernel
+def next_ego(vf, vi, wf, wi, lanes, sched, p, mask) -> None:  # fmt: skip
+    """`next_ego_world` for the worlds of `mask`."""
+    for b in range(vf.shape[0]):
+        if mask[b]:
+            next_ego_world(vf, vi, wf, wi, lanes, sched, b, p)
+
+
+@kernel
+def remove_ego(vf, vi, wf, wi, lanes, p, mask) -> None:  # fmt: skip
+    """`remove_ego_world` for the worlds of `mask`."""
+    for b in range(vf.shape[0]):
+        if mask[b]:
+            remove_ego_world(vf, vi, wf, wi, lanes, b, p)
+
+
+@kernel
+def pick_roster(
+    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, out: np.ndarray
+) -> None:
+    """out [B, K]: the right-lane vehicles whose arrival time at the merge point (at current
+    speeds, at least 1 m/s) is closest to the ego's, nearest first (ties: lower slot first);
+    -1 where the lane holds fewer than K."""
+    k = out.shape[1]
+    for b in range(vf.shape[0]):
+        t_e = -vf[b, VF_X, EGO] / max(vf[b, VF_V, EGO], 1.0)
+        for j in range(k):
+            best, best_d = -1, INF
+            for i in range(wi[b, WI_N_RIGHT]):
+                s = lanes[b, RIGHT, i]
+                if s == EGO or _in(out, b, j, s):
+                    continue
+                d = abs(-vf[b, VF_X, s] / max(vf[b, VF_V, s], 1.0) - t_e)
+                if d < best_d or (d == best_d and s < best):
+                    best, best_d = s, d
+            out[b, j] = best
+
+
+@kernel
+def _in(out: np.ndarray, b: int, j: int, s: int) -> bool:
+    """s is among out[b, :j]."""
+    for i in range(j):
+        if out[b, i] == s:
+            return True
+    return False
+
+
+@kernel
+def rebuild_lanes(vf, vi, wf, wi, lanes, p, mask) -> None:  # fmt: skip
+    """Lane lists of the worlds of `mask` from scratch (after placing vehicles directly): every
+    active vehicle with a highway lane, downstream first (equal positions: lower slot first)."""
+    for b in range(vf.shape[0]):
+        if not mask[b]:
+            continue
+        n_active = 0
+        for lane in range(2):
+            n = 0
+            for s in range(vi.shape[2]):
+                if vi[b, VI_ACTIVE, s] == 1 and vi[b, VI_LANE, s] == lane:
+                    lanes[b, lane, n] = s
+                    n += 1
+            wi[b, WI_N_RIGHT + lane] = n
+            n_active += n
+            for i in range(n, lanes.shape[2]):
+                lanes[b, lane, i] = -1
+            ll.resort(lanes, vf, wi, b, lane)  # stable: equal positions keep slot order
+        if vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP:
+            n_active += 1
+        wi[b, WI_N_ACTIVE] = n_active
+        neighbours(vf, vi, wi, lanes, b, p)
+        ego_gaps(vf, vi, wf, wi, lanes, b, p)

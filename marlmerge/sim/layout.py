@@ -1,0 +1,331 @@
+"""Where every quantity of the compiled core lives: codes, packed-array rows and parameters.
+
+The core keeps B worlds in a handful of packed NumPy arrays, so that one call of a compiled kernel
+takes few arguments (each array argument costs dispatch time), world-major so that everything of
+one world lies together in memory while a kernel steps it:
+
+    vf  [B, VF_ROWS, N] float64  per vehicle slot: position, speed, driver parameters, ...
+    vi  [B, VI_ROWS, N] int64    per vehicle slot: lane, active, profile, id, collided
+    wf  [B, WF_ROWS]    float64  per world: time, the ego's clocks, its gap vehicles, counters
+    wi  [B, WI_ROWS]    int64    per world: the ego's outcome, counts, lane-list lengths, ...
+    lanes [B, 2, N]     int64    each highway lane's vehicle slots, sorted downstream first
+    sched [B, 3, Q, SC_COLS] float64  drawn arrivals (lanes RIGHT, LEFT) and ego departures (2)
+
+Slot 0 of every world is the ramp vehicle (the ego). Rows are named by the constants below; the
+Python side reads them through `TrafficState`, never by number.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from marlmerge.config import ScenarioConfig
+
+# NumPy integers rather than Python ints: Numba compiles a separate copy of a function for every
+# literal int argument, but types a global NumPy integer as a plain int64.
+RAMP, RIGHT, LEFT = np.int64(-1), np.int64(0), np.int64(1)
+"""Lane codes. The ego is on `RAMP` until it overlaps the right lane, then in `RIGHT`."""
+EGO = np.int64(0)
+"""The ego's slot."""
+EGO_STREAM = np.int64(2)
+"""Row of `sched` that holds the drawn ego departures (rows 0 and 1 are the lanes' arrivals)."""
+
+OUTCOME_NONE, OUTCOME_SUCCESS, OUTCOME_COLLISION, OUTCOME_TRUNCATED = 0, 1, 2, 3
+OUTCOME_NAMES = {0: "running", 1: "success", 2: "collision", 3: "truncated"}
+
+NEUTRAL, COOPERATIVE, ADVERSARIAL = 0, 1, 2
+"""Driver profile codes (`marlmerge.sim.drivers.Profile`)."""
+
+# ---- vf rows: per-slot floats
+VF_X, VF_V, VF_A, VF_V0, VF_T, VF_POL, VF_SINCE_LC, VF_AGE, VF_GAP, VF_VLEAD, VF_ACC = range(11)
+VF_ROWS = 11
+"""x_m (front bumper), v_mps, a_mps2 (realised over the last step), v0_mps (IDM desired speed),
+headway_s (IDM T), politeness (MOBIL p), since_lane_change_s, age_s (time on the road);
+scratch of the step: gap_m (bumper gap to the own-lane leader, inf if none), v_lead_mps (own
+speed if none), acc (the acceleration being applied)."""
+
+# ---- vi rows: per-slot ints
+VI_LANE, VI_ACTIVE, VI_PROFILE, VI_ID, VI_COLLIDED = range(5)
+VI_LEADER, VI_FOLLOWER, VI_FLAGS = 5, 6, 7
+VI_ROWS = 8
+"""lane, active (0/1), profile, vehicle_id (unique per world, never reused), collided (awaiting
+removal with the ego's episode); derived each step: leader and follower slots (-1 none), and
+event flags (`EV_*` bits): collided or exited during the last call, and flags of the current
+simulator step."""
+EV_COLLIDED, EV_EXITED = 1, 2
+"""... in a collision / off the road's downstream end during the last call."""
+EV_HIT, EV_TOW, EV_YIELDING, EV_CHANGE, EV_CONTROLLED = 4, 8, 16, 32, 64
+"""... in this simulator step: in a collision, to be towed away, yielding to the ramp vehicle,
+changing lanes, driven by an external command."""
+
+# ---- wf rows: per-world floats
+(
+    WF_T,
+    WF_EGO_T,
+    WF_EGO_STALL,
+    WF_EGO_IN_LANE,
+    WF_DELAY_SUM,
+    WF_DF,
+    WF_DB,
+    WF_XF,
+    WF_XB,
+    WF_VF,
+    WF_VB,
+    WF_EGO_CMD,
+    WF_AFTER_V0,
+    WF_AFTER_T,
+    WF_AFTER_POL,
+) = range(15)
+WF_ROWS = 15
+"""t_s; ego_time_s (since departure), ego_stall_s, ego_in_lane_s (since it joined the right lane);
+entry_delay_s (summed over entered vehicles: entry time minus drawn arrival time); the ego's gap
+vehicles after the last step: d_front_m, d_back_m (bumper gaps, sensing range if none), x_front_m,
+x_back_m, v_front_mps, v_back_mps; the ego acceleration applied in the last step; the driver
+parameters (v0, T, politeness) the current ego drives with once it has merged and stays on the
+road as a mainline vehicle."""
+
+# ---- wi rows: per-world ints
+(
+    WI_OUTCOME,
+    WI_EGO_COUNT,
+    WI_NEXT_ID,
+    WI_BG_COLLISIONS,
+    WI_STEPS,
+    WI_ENTERED,
+    WI_EXITED,
+    WI_N_RIGHT,
+    WI_N_LEFT,
+    WI_FRONT,
+    WI_BACK,
+    WI_N_ACTIVE,
+    WI_HEAD_RIGHT,
+    WI_HEAD_LEFT,
+    WI_HEAD_EGO,
+    WI_COUNT_RIGHT,
+    WI_COUNT_LEFT,
+    WI_COUNT_EGO,
+    WI_QUEUE_RIGHT,
+    WI_QUEUE_LEFT,
+    WI_QUEUE_MAX,
+    WI_EGO_PARTNER,
+    WI_EGO_REAR,
+    WI_STEP_OUTCOME,
+    WI_OVERFLOW,
+    WI_VEH_STEPS,
+    WI_SUBSTEPS,
+    WI_EGO_STEPS,
+) = range(28)
+WI_ROWS = 28
+"""ego_outcome (OUTCOME_*), ego_count, next_id, background_collisions, steps (simulator steps of
+this world), entered, exited (vehicles in / out since reset), lane-list lengths (right, left),
+the ego's gap-front and gap-back slots (-1 none), active vehicles, ring heads and counts of the
+three `sched` streams, entrance queues (right, left) and the longest queue since reset, the
+ego's collision partner and whether it was the rear vehicle (last call), the outcome reached in
+the last call (0 if none), an overflow flag (a kernel found no free slot: a bug), vehicle-steps
+simulated since reset, simulator steps run in the last call, and how many of them the ego was
+running at (0 when it was not running at the start of the call)."""
+assert WI_N_LEFT == WI_N_RIGHT + 1 and WI_HEAD_LEFT == WI_HEAD_RIGHT + 1  # indexed as base + lane
+assert WI_COUNT_LEFT == WI_COUNT_RIGHT + 1 and WI_QUEUE_LEFT == WI_QUEUE_RIGHT + 1
+assert WI_HEAD_EGO == WI_HEAD_RIGHT + EGO_STREAM and WI_COUNT_EGO == WI_COUNT_RIGHT + EGO_STREAM
+
+# ---- sched columns: one drawn vehicle
+SC_T, SC_V, SC_V0, SC_T_HW, SC_POL, SC_PROFILE = range(6)
+SC_COLS = 6
+"""arrival time (ego stream: unused), speed at the entrance (ego: at the ramp start), IDM v0,
+headway T, politeness, profile code (the ego stream's driver joins traffic as NEUTRAL)."""
+
+# ---- roster rows: the highway agents of a call, int64 [RO_ROWS, B, K]
+RO_SLOT, RO_ID, RO_MASK, RO_EXITED = range(4)
+RO_ROWS = 4
+"""slot (-1 none), vehicle id, mask (still counting: on the road since the roster was drawn), and
+whether it left by the downstream end during the last call (set by the kernel)."""
+
+# ---- outputs of a rollout call
+TR_X, TR_V, TR_A, TR_DF, TR_VF, TR_DB, TR_VB, TR_AB, TR_HIT = range(9)
+TR_COLS = 9
+"""Ego trace, one row per simulator step: x_m, v_mps, a_mps2, d_front_m, v_front_mps, d_back_m,
+v_back_mps (nan/inf conventions of `marlmerge.evaluation.metrics`: inf gap and nan speed when no
+vehicle is sensed), a_back_mps2 (nan if none), collided (0/1)."""
+
+# ---- parameters: one float64 vector built from the config
+_PARAMS = (
+    "dt_s",
+    "lane_change_every_steps",
+    "x_entrance_m",
+    "x_exit_m",
+    "x_ramp_start_m",
+    "x_overlap_m",
+    "v_limit_mps",
+    "success_distance_m",
+    "length_m",
+    "max_brake_mps2",
+    "max_accel_mps2",
+    "idm_a",
+    "idm_b",
+    "idm_s0",
+    "idm_delta",
+    "lc_threshold",
+    "keep_right_bias",
+    "safe_brake",
+    "lc_cooldown_s",
+    "interaction_range_m",
+    "yield_max_brake",
+    "yield_lc_bonus",
+    "adv_v0_mps",
+    "adv_headway_s",
+    "adv_accel",
+    "ego_headway_s",
+    "ego_lo",
+    "ego_hi",
+    "sensing_range_m",
+    "max_episode_s",
+    "stall_speed_mps",
+    "stall_time_s",
+    "w_accel",
+    "w_front",
+    "w_back",
+    "w_speed",
+    "safe_headway_s",
+    "safe_min_gap_m",
+    "speed_low_fraction",
+    "speed_over_scale_mps",
+    "distance_active_from_m",
+    "collision_penalty",
+    "w_highway_speed",
+    "i_sign",
+    "i_w_ego_collision",
+    "i_w_hard_brake_per_s",
+    "i_w_stall",
+    "i_w_unsafe_gap_per_s",
+    "i_own_collision_penalty",
+    "i_hard_brake_mps2",
+    "i_cut_in_grace_s",
+    "hw_lo",
+    "hw_hi",
+    "speed_scale_mps",
+    "position_scale_m",
+)
+(
+    P_DT,
+    P_LC_EVERY,
+    P_X_ENTRANCE,
+    P_X_EXIT,
+    P_X_RAMP_START,
+    P_X_OVERLAP,
+    P_V_LIMIT,
+    P_SUCCESS,
+    P_LEN,
+    P_MAX_BRAKE,
+    P_MAX_ACCEL,
+    P_A,
+    P_B,
+    P_S0,
+    P_DELTA,
+    P_LC_THRESHOLD,
+    P_KEEP_RIGHT,
+    P_SAFE_BRAKE,
+    P_LC_COOLDOWN,
+    P_INTERACTION_RANGE,
+    P_YIELD_MAX_BRAKE,
+    P_YIELD_LC_BONUS,
+    P_ADV_V0,
+    P_ADV_T,
+    P_ADV_A,
+    P_EGO_T,
+    P_EGO_LO,
+    P_EGO_HI,
+    P_SENSING,
+    P_MAX_EPISODE,
+    P_STALL_SPEED,
+    P_STALL_TIME,
+    P_W_ACCEL,
+    P_W_FRONT,
+    P_W_BACK,
+    P_W_SPEED,
+    P_SAFE_HEADWAY,
+    P_SAFE_MIN_GAP,
+    P_SPEED_LOW,
+    P_SPEED_OVER,
+    P_DIST_ACTIVE,
+    P_COLLISION_PENALTY,
+    P_W_HW_SPEED,
+    P_I_SIGN,
+    P_I_W_COLLISION,
+    P_I_W_HARD_BRAKE,
+    P_I_W_STALL,
+    P_I_W_UNSAFE,
+    P_I_OWN_COLLISION,
+    P_I_HARD_BRAKE,
+    P_I_GRACE,
+    P_HW_LO,
+    P_HW_HI,
+    P_SPEED_SCALE,
+    P_POSITION_SCALE,
+) = range(len(_PARAMS))
+N_PARAMS = len(_PARAMS)
+
+
+def pack_params(cfg: ScenarioConfig, speed_scale_mps: float, position_scale_m: float) -> np.ndarray:
+    """The config's numbers in the order of `P`, as the kernels read them."""
+    r, d, e, w, i, s = cfg.road, cfg.driver, cfg.ego, cfg.reward, cfg.interaction, cfg.sim
+    v_limit = r.speed_limit_mps
+    values = {
+        "dt_s": s.dt_s,
+        "lane_change_every_steps": float(d.lane_change_every_steps),
+        "x_entrance_m": r.x_entrance_m,
+        "x_exit_m": r.x_exit_m,
+        "x_ramp_start_m": r.x_ramp_start_m,
+        "x_overlap_m": cfg.x_overlap_m,
+        "v_limit_mps": v_limit,
+        "success_distance_m": e.success_distance_m,
+        "length_m": cfg.vehicle.length_m,
+        "max_brake_mps2": cfg.vehicle.max_brake_mps2,
+        "max_accel_mps2": cfg.vehicle.max_accel_mps2,
+        "idm_a": d.accel_mps2,
+        "idm_b": d.comfort_brake_mps2,
+        "idm_s0": d.min_gap_m,
+        "idm_delta": d.delta,
+        "lc_threshold": d.lane_change_threshold_mps2,
+        "keep_right_bias": d.keep_right_bias_mps2,
+        "safe_brake": d.safe_brake_mps2,
+        "lc_cooldown_s": d.lane_change_cooldown_s,
+        "interaction_range_m": d.interaction_range_m,
+        "yield_max_brake": d.yield_max_brake_mps2,
+        "yield_lc_bonus": d.yield_lane_change_bonus_mps2,
+        "adv_v0_mps": d.adversarial_speed_factor * v_limit,
+        "adv_headway_s": d.adversarial_time_headway_s,
+        "adv_accel": d.adversarial_accel_mps2,
+        "ego_headway_s": float(np.mean(d.time_headway_s)),
+        "ego_lo": e.accel_bounds_mps2[0],
+        "ego_hi": e.accel_bounds_mps2[1],
+        "sensing_range_m": e.sensing_range_m,
+        "max_episode_s": e.max_episode_s,
+        "stall_speed_mps": e.stall_speed_mps,
+        "stall_time_s": e.stall_time_s,
+        "w_accel": w.w_accel,
+        "w_front": w.w_front,
+        "w_back": w.w_back,
+        "w_speed": w.w_speed,
+        "safe_headway_s": w.safe_headway_s,
+        "safe_min_gap_m": w.safe_min_gap_m,
+        "speed_low_fraction": w.speed_low_fraction,
+        "speed_over_scale_mps": w.speed_over_scale_mps,
+        "distance_active_from_m": w.distance_active_from_m,
+        "collision_penalty": w.collision_penalty,
+        "w_highway_speed": w.w_highway_speed,
+        "i_sign": i.sign,
+        "i_w_ego_collision": i.w_ego_collision,
+        "i_w_hard_brake_per_s": i.w_ego_hard_brake_per_s,
+        "i_w_stall": i.w_ego_stall,
+        "i_w_unsafe_gap_per_s": i.w_ego_unsafe_gap_per_s,
+        "i_own_collision_penalty": i.own_collision_penalty,
+        "i_hard_brake_mps2": i.hard_brake_mps2,
+        "i_cut_in_grace_s": i.cut_in_grace_s,
+        "hw_lo": s.highway_agent_accel_bounds_mps2[0],
+        "hw_hi": s.highway_agent_accel_bounds_mps2[1],
+        "speed_scale_mps": speed_scale_mps,
+        "position_scale_m": position_scale_m,
+    }
+    if set(values) != set(_PARAMS):  # pragma: no cover - a developer error, caught by any test
+        raise AssertionError(f"pack_params out of date: {set(values) ^ set(_PARAMS)}")
+    return np.array([float(values[name]) for name in _PARAMS])

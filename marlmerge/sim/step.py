@@ -1,0 +1,753 @@
+"""One simulator step of one world, compiled: the dynamics, written once.
+
+`substep` advances world `b` by `dt_s`, in this order:
+
+1. MOBIL lane-change decisions on the pre-step state (every `lane_change_every_steps`);
+2. accelerations on the pre-step state (IDM and the interaction profiles for mainline drivers,
+   external commands for controlled highway agents, the ego's command; NaN: plain IDM) and the
+   ballistic update (a vehicle that stops within the step stops where v reaches 0), in one sweep
+   per lane; then the lane changes;
+4. exits downstream, arrivals at the entrance (queued until a safe entry exists), the ego joining
+   the right lane once it overlaps it;
+5. collisions: overlaps of consecutive vehicles in a lane; mainline wrecks are towed away at
+   once, the ego's stay until its episode is closed;
+6. the ego's episode clock and outcome, and its gap vehicles after the step.
+
+Arrays and rows: `marlmerge.sim.layout`; lane lists: `marlmerge.sim.lanes`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from marlmerge.sim import lanes as ll
+from marlmerge.sim.drivers import ego_merges_ahead, entry_speed, idm, profile_accel
+from marlmerge.sim.jit import kernel
+from marlmerge.sim.layout import (
+    COOPERATIVE,
+    EGO,
+    EV_CHANGE,
+    EV_COLLIDED,
+    EV_CONTROLLED,
+    EV_EXITED,
+    EV_HIT,
+    EV_TOW,
+    LEFT,
+    OUTCOME_COLLISION,
+    OUTCOME_NONE,
+    OUTCOME_SUCCESS,
+    OUTCOME_TRUNCATED,
+    P_A,
+    P_ADV_A,
+    P_ADV_T,
+    P_ADV_V0,
+    P_B,
+    P_DELTA,
+    P_DT,
+    P_EGO_HI,
+    P_EGO_LO,
+    P_HW_HI,
+    P_HW_LO,
+    P_INTERACTION_RANGE,
+    P_KEEP_RIGHT,
+    P_LC_COOLDOWN,
+    P_LC_EVERY,
+    P_LC_THRESHOLD,
+    P_LEN,
+    P_MAX_ACCEL,
+    P_MAX_BRAKE,
+    P_MAX_EPISODE,
+    P_S0,
+    P_SAFE_BRAKE,
+    P_SENSING,
+    P_STALL_SPEED,
+    P_STALL_TIME,
+    P_SUCCESS,
+    P_V_LIMIT,
+    P_X_ENTRANCE,
+    P_X_EXIT,
+    P_X_OVERLAP,
+    P_YIELD_LC_BONUS,
+    P_YIELD_MAX_BRAKE,
+    RAMP,
+    RIGHT,
+    RO_ID,
+    RO_MASK,
+    RO_SLOT,
+    SC_POL,
+    SC_PROFILE,
+    SC_T,
+    SC_T_HW,
+    SC_V,
+    SC_V0,
+    VF_A,
+    VF_ACC,
+    VF_AGE,
+    VF_GAP,
+    VF_POL,
+    VF_SINCE_LC,
+    VF_T,
+    VF_V,
+    VF_V0,
+    VF_VLEAD,
+    VF_X,
+    VI_ACTIVE,
+    VI_COLLIDED,
+    VI_FLAGS,
+    VI_FOLLOWER,
+    VI_ID,
+    VI_LANE,
+    VI_LEADER,
+    VI_PROFILE,
+    WF_DB,
+    WF_DELAY_SUM,
+    WF_DF,
+    WF_EGO_CMD,
+    WF_EGO_IN_LANE,
+    WF_EGO_STALL,
+    WF_EGO_T,
+    WF_T,
+    WF_VB,
+    WF_VF,
+    WF_XB,
+    WF_XF,
+    WI_BACK,
+    WI_BG_COLLISIONS,
+    WI_COUNT_RIGHT,
+    WI_EGO_PARTNER,
+    WI_EGO_REAR,
+    WI_ENTERED,
+    WI_EXITED,
+    WI_FRONT,
+    WI_HEAD_RIGHT,
+    WI_N_ACTIVE,
+    WI_N_RIGHT,
+    WI_NEXT_ID,
+    WI_OUTCOME,
+    WI_OVERFLOW,
+    WI_QUEUE_MAX,
+    WI_QUEUE_RIGHT,
+    WI_STEP_OUTCOME,
+    WI_STEPS,
+    WI_VEH_STEPS,
+)
+
+INF = math.inf
+
+
+@kernel
+def neighbours(
+    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
+) -> None:
+    """Leader, follower, bumper gap and leader speed of every vehicle from the lane lists (gap
+    inf and the own speed when there is no leader). The ego on the ramp has no neighbours."""
+    length = p[P_LEN]
+    for lane in range(2):
+        prev = -1
+        for i in range(wi[b, WI_N_RIGHT + lane]):
+            s = lanes[b, lane, i]
+            vi[b, VI_LEADER, s] = prev
+            vi[b, VI_FOLLOWER, s] = -1
+            if prev >= 0:
+                vf[b, VF_GAP, s] = vf[b, VF_X, prev] - length - vf[b, VF_X, s]
+                vf[b, VF_VLEAD, s] = vf[b, VF_V, prev]
+                vi[b, VI_FOLLOWER, prev] = s
+            else:
+                vf[b, VF_GAP, s] = INF
+                vf[b, VF_VLEAD, s] = vf[b, VF_V, s]
+            prev = s
+    if vi[b, VI_LANE, EGO] == RAMP:
+        vi[b, VI_LEADER, EGO] = -1
+        vi[b, VI_FOLLOWER, EGO] = -1
+        vf[b, VF_GAP, EGO] = INF
+        vf[b, VF_VLEAD, EGO] = vf[b, VF_V, EGO]
+
+
+@kernel(inline=True)
+def driver_params(p: np.ndarray) -> tuple:
+    """The parameters the driver models need, read once into scalars: a loop that writes to the
+    vehicle arrays would otherwise reload them from `p` on every iteration (they might alias)."""
+    return (
+        p[P_A],
+        p[P_B],
+        p[P_S0],
+        p[P_DELTA],
+        p[P_INTERACTION_RANGE],
+        p[P_YIELD_MAX_BRAKE],
+        p[P_LEN],
+        p[P_ADV_V0],
+        p[P_ADV_T],
+        p[P_ADV_A],
+        p[P_X_OVERLAP],
+        p[P_MAX_BRAKE],
+        p[P_MAX_ACCEL],
+    )
+
+
+@kernel(inline=True)
+def _scripted_accel(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    b: int,
+    s: int,
+    dp: tuple,
+    x: float,
+    v: float,
+    gap: float,
+    v_lead: float,
+    pending: bool,
+    x_e: float,
+    v_e: float,
+) -> float:
+    """Scripted acceleration of slot `s` at position x, speed v, and the given leader gap and
+    speed (pre-step state), clipped to the vehicle limits. dp: `driver_params`."""
+    acc, _ = profile_accel(
+        vi[b, VI_PROFILE, s],
+        v,
+        gap,
+        v_lead,
+        vf[b, VF_V0, s],
+        vf[b, VF_T, s],
+        vi[b, VI_LANE, s] == RIGHT,
+        pending,
+        x_e - x,
+        v_e,
+        dp[10] - x_e,
+        dp[0],
+        dp[1],
+        dp[2],
+        dp[3],
+        dp[4],
+        dp[5],
+        dp[6],
+        dp[7],
+        dp[8],
+        dp[9],
+    )
+    return min(max(acc, -dp[11]), dp[12])
+
+
+@kernel(inline=True)
+def _move(vf: np.ndarray, b: int, s: int, acc: float, dt: float) -> None:
+    """Ballistic update of slot `s`; a vehicle that stops within the step stops where v = 0."""
+    v_old = vf[b, VF_V, s]
+    v_new = max(v_old + acc * dt, 0.0)
+    if v_new == 0.0:
+        dx = 0.5 * v_old * v_old / max(-acc, 1e-9)
+    else:
+        dx = (v_old + v_new) * (0.5 * dt)
+    vf[b, VF_X, s] += dx
+    vf[b, VF_A, s] = (v_new - v_old) * (1.0 / dt)
+    vf[b, VF_V, s] = v_new
+    vf[b, VF_SINCE_LC, s] += dt
+    vf[b, VF_AGE, s] += dt
+
+
+@kernel
+def mark_controlled(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    roster: np.ndarray,
+    roster_cmd: np.ndarray,
+) -> None:
+    """Flag (`EV_CONTROLLED`) the highway agents driven by an external command this step and
+    put the command, clipped to the agent bounds, into `VF_ACC`. NaN commands: scripted."""
+    for j in range(roster.shape[2]):
+        s = roster[RO_SLOT, b, j]
+        cmd = roster_cmd[b, j]
+        if s <= EGO or roster[RO_MASK, b, j] == 0 or math.isnan(cmd):
+            continue
+        if vi[b, VI_ACTIVE, s] == 1 and vi[b, VI_ID, s] == roster[RO_ID, b, j]:
+            vf[b, VF_ACC, s] = min(max(cmd, p[P_HW_LO]), p[P_HW_HI])
+            vi[b, VI_FLAGS, s] |= EV_CONTROLLED
+
+
+@kernel
+def advance(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    ego_cmd: float,
+) -> int:
+    """Accelerations on the pre-step state and the ballistic update, in one sweep per lane from
+    downstream (each vehicle's leader is still known as it was before the step). Mainline drivers
+    follow their profile, controlled agents their command (`mark_controlled`), the ego its
+    command clipped to its bounds (NaN: plain IDM, ignoring the merge). Returns how many
+    vehicles moved."""
+    dt = p[P_DT]
+    dp = driver_params(p)
+    length = dp[6]
+    ego_on = vi[b, VI_ACTIVE, EGO] == 1
+    pending = ego_on and vi[b, VI_LANE, EGO] == RAMP
+    x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    ego_idm = math.isnan(ego_cmd)
+    ego_a = min(max(ego_cmd, p[P_EGO_LO]), p[P_EGO_HI])
+    moved = 0
+    for lane in range(2):
+        n = wi[b, WI_N_RIGHT + lane]
+        x_lead, v_lead = INF, 0.0
+        for i in range(n):
+            s = lanes[b, lane, i]
+            x, v = vf[b, VF_X, s], vf[b, VF_V, s]
+            gap = x_lead - length - x if i > 0 else INF
+            vl = v_lead if i > 0 else v
+            flags = vi[b, VI_FLAGS, s]
+            if s == EGO:
+                acc = ego_a
+                if ego_idm:
+                    acc = _scripted_accel(vf, vi, b, s, dp, x, v, gap, vl, False, x_e, v_e)
+                wf[b, WF_EGO_CMD] = acc
+            elif flags & EV_CONTROLLED:
+                acc = vf[b, VF_ACC, s]
+            else:
+                acc = _scripted_accel(vf, vi, b, s, dp, x, v, gap, vl, pending, x_e, v_e)
+            vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED)
+            _move(vf, b, s, acc, dt)
+            x_lead, v_lead = x, v
+        moved += n
+    if pending:  # on the ramp: no leader
+        acc = ego_a
+        if ego_idm:
+            acc = _scripted_accel(vf, vi, b, EGO, dp, x_e, v_e, INF, v_e, False, x_e, v_e)
+        wf[b, WF_EGO_CMD] = acc
+        vi[b, VI_FLAGS, EGO] &= ~(EV_HIT | EV_TOW)
+        _move(vf, b, EGO, acc, dt)
+        moved += 1
+    return moved
+
+
+@kernel(inline=True)
+def _idm_of(vf: np.ndarray, b: int, s: int, gap: float, v_lead: float, dp: tuple) -> float:
+    """IDM acceleration of slot `s` (its own v0 and T, the base a, b, s0) at a hypothetical gap."""
+    return idm(
+        vf[b, VF_V, s], gap, v_lead, vf[b, VF_V0, s], vf[b, VF_T, s], dp[0], dp[1], dp[2], dp[3]
+    )
+
+
+@kernel
+def _mobil_wants_change(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    s: int,
+    p: np.ndarray,
+    dp: tuple,
+    pending: bool,
+    x_e: float,
+    v_e: float,
+) -> bool:
+    """MOBIL for slot `s` on the pre-step state: incentive + keep-right bias above the threshold,
+    and safe (the new follower brakes no harder than `safe_brake_mps2`, both gaps above s0)."""
+    length, s0 = p[P_LEN], p[P_S0]
+    lane = vi[b, VI_LANE, s]
+    target = 1 - lane
+    x, v = vf[b, VF_X, s], vf[b, VF_V, s]
+    t_lead, t_follow = ll.neighbours_at(lanes, vf, wi, b, target, x)
+    gap_t, v_t = INF, v
+    if t_lead >= 0:
+        gap_t, v_t = vf[b, VF_X, t_lead] - x - length, vf[b, VF_V, t_lead]
+    back_gap_t = INF
+    others = 0.0
+    a_nf_after = 0.0
+    if t_follow >= 0:  # the new follower: before (behind the target leader) and after (behind s)
+        back_gap_t = x - vf[b, VF_X, t_follow] - length
+        a_nf_before = _idm_of(
+            vf, b, t_follow, vf[b, VF_GAP, t_follow], vf[b, VF_VLEAD, t_follow], dp
+        )
+        a_nf_after = _idm_of(vf, b, t_follow, back_gap_t, v, dp)
+        others += a_nf_after - a_nf_before
+    of = vi[b, VI_FOLLOWER, s]
+    if of >= 0:  # the old follower: before (behind s) and after (behind s's leader)
+        gap_back = vf[b, VF_GAP, of]
+        a_of_before = _idm_of(vf, b, of, gap_back, v, dp)
+        a_of_after = _idm_of(
+            vf, b, of, gap_back + length + vf[b, VF_GAP, s], vf[b, VF_VLEAD, s], dp
+        )
+        others += a_of_after - a_of_before
+    a_now = _idm_of(vf, b, s, vf[b, VF_GAP, s], vf[b, VF_VLEAD, s], dp)
+    a_tgt = _idm_of(vf, b, s, gap_t, v_t, dp)
+    incentive = a_tgt - a_now + vf[b, VF_POL, s] * others
+    bias = -p[P_KEEP_RIGHT] if target == LEFT else p[P_KEEP_RIGHT]
+    if target == LEFT and pending and vi[b, VI_PROFILE, s] == COOPERATIVE:
+        # a cooperative driver that is yielding to the ramp vehicle is keener to move left
+        if ego_merges_ahead(x_e - x, v_e, p[P_X_OVERLAP] - x_e, v, p[P_INTERACTION_RANGE]):
+            bias += p[P_YIELD_LC_BONUS]
+    safe = (t_follow < 0 or a_nf_after >= -p[P_SAFE_BRAKE]) and gap_t > s0 and back_gap_t > s0
+    return safe and incentive + bias > p[P_LC_THRESHOLD]
+
+
+@kernel
+def lane_change_decisions(
+    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
+) -> int:
+    """Flag (`EV_CHANGE`) the scripted mainline vehicles that change lanes after this step,
+    decided on the pre-step state. Returns how many."""
+    pending = vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP
+    x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    dp = driver_params(p)
+    n = 0
+    for lane in range(2):
+        for i in range(wi[b, WI_N_RIGHT + lane]):
+            s = lanes[b, lane, i]
+            if s == EGO or vi[b, VI_FLAGS, s] & EV_CONTROLLED:
+                continue
+            if vf[b, VF_SINCE_LC, s] < p[P_LC_COOLDOWN]:
+                continue
+            if _mobil_wants_change(vf, vi, wi, lanes, b, s, p, dp, pending, x_e, v_e):
+                vi[b, VI_FLAGS, s] |= EV_CHANGE
+                n += 1
+    return n
+
+
+@kernel
+def apply_lane_changes(
+    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int
+) -> None:
+    """Move the flagged vehicles to the other lane, at their new positions."""
+    for lane in range(2):
+        i = 0
+        while i < wi[b, WI_N_RIGHT + lane]:
+            s = lanes[b, lane, i]
+            if vi[b, VI_FLAGS, s] & EV_CHANGE:
+                vi[b, VI_FLAGS, s] &= ~EV_CHANGE
+                ll.remove(lanes, wi, b, lane, s)
+                vi[b, VI_LANE, s] = 1 - lane
+                vf[b, VF_SINCE_LC, s] = 0.0
+                ll.insert(lanes, vf, wi, b, 1 - lane, s)
+            else:
+                i += 1
+
+
+@kernel
+def deactivate(vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, s: int) -> None:
+    """Take slot `s` off the road (out of its lane list, inactive)."""
+    lane = vi[b, VI_LANE, s]
+    if lane >= RIGHT:
+        ll.remove(lanes, wi, b, lane, s)
+    if vi[b, VI_ACTIVE, s] == 1:
+        wi[b, WI_N_ACTIVE] -= 1
+    vi[b, VI_ACTIVE, s] = 0
+
+
+@kernel
+def exits(
+    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
+) -> None:
+    """Vehicles past the downstream end leave (the ego never does: its episode ends first)."""
+    for lane in range(2):
+        i = 0
+        while i < wi[b, WI_N_RIGHT + lane]:
+            s = lanes[b, lane, i]
+            if vf[b, VF_X, s] <= p[P_X_EXIT]:
+                break
+            if s == EGO:
+                i += 1
+                continue
+            deactivate(vi, wi, lanes, b, s)
+            vi[b, VI_FLAGS, s] |= EV_EXITED
+            wi[b, WI_EXITED] += 1
+
+
+@kernel
+def free_slot(vi: np.ndarray, b: int) -> int:
+    """The lowest free mainline slot, -1 if none."""
+    for s in range(1, vi.shape[2]):
+        if vi[b, VI_ACTIVE, s] == 0:
+            return s
+    return -1
+
+
+@kernel
+def spawn(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    s: int,
+    lane: int,
+    x: float,
+    v: float,
+    v0: float,
+    headway: float,
+    politeness: float,
+    profile: int,
+    p: np.ndarray,
+) -> None:
+    """A new mainline vehicle in slot `s` (a fresh vehicle id), put into its lane list."""
+    vf[b, VF_X, s] = x
+    vf[b, VF_V, s] = v
+    vf[b, VF_A, s] = 0.0
+    vf[b, VF_V0, s] = v0
+    vf[b, VF_T, s] = headway
+    vf[b, VF_POL, s] = politeness
+    vf[b, VF_SINCE_LC, s] = p[P_LC_COOLDOWN]
+    vf[b, VF_AGE, s] = 0.0
+    vi[b, VI_LANE, s] = lane
+    vi[b, VI_ACTIVE, s] = 1
+    vi[b, VI_PROFILE, s] = profile
+    vi[b, VI_ID, s] = wi[b, WI_NEXT_ID]
+    vi[b, VI_COLLIDED, s] = 0
+    vi[b, VI_FLAGS, s] &= EV_COLLIDED | EV_EXITED  # what the slot saw earlier in this call
+    wi[b, WI_NEXT_ID] += 1
+    wi[b, WI_N_ACTIVE] += 1
+    ll.insert(lanes, vf, wi, b, lane, s)
+
+
+@kernel
+def arrivals(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    sched: np.ndarray,
+    b: int,
+    p: np.ndarray,
+) -> None:
+    """The first vehicle of each lane's entrance queue (drawn arrivals whose time has come) enters
+    at the entrance when its own IDM can follow the last vehicle of the lane from there braking
+    no harder than its comfortable deceleration b (`entry_speed`: at its drawn speed, else at the
+    speed of that vehicle); otherwise it waits; nobody is dropped. Queue lengths are counted
+    every step."""
+    t = wf[b, WF_T]
+    q_len = sched.shape[2]
+    for lane in range(2):
+        head, count = wi[b, WI_HEAD_RIGHT + lane], wi[b, WI_COUNT_RIGHT + lane]
+        if count > 0 and sched[b, lane, head, SC_T] <= t:
+            n = wi[b, WI_N_RIGHT + lane]
+            v_enter = sched[b, lane, head, SC_V]
+            if n > 0:
+                tail = lanes[b, lane, n - 1]
+                gap = vf[b, VF_X, tail] - p[P_LEN] - p[P_X_ENTRANCE]
+                v_enter = entry_speed(
+                    sched[b, lane, head, SC_V],
+                    gap,
+                    vf[b, VF_V, tail],
+                    sched[b, lane, head, SC_V0],
+                    sched[b, lane, head, SC_T_HW],
+                    p[P_A],
+                    p[P_B],
+                    p[P_S0],
+                    p[P_DELTA],
+                )
+            if v_enter >= 0.0:
+                s = free_slot(vi, b)
+                if s < 0:
+                    wi[b, WI_OVERFLOW] = 1
+                else:
+                    spawn(
+                        vf,
+                        vi,
+                        wi,
+                        lanes,
+                        b,
+                        s,
+                        lane,
+                        p[P_X_ENTRANCE],
+                        v_enter,
+                        sched[b, lane, head, SC_V0],
+                        sched[b, lane, head, SC_T_HW],
+                        sched[b, lane, head, SC_POL],
+                        int(sched[b, lane, head, SC_PROFILE]),
+                        p,
+                    )
+                    wf[b, WF_DELAY_SUM] += t - sched[b, lane, head, SC_T]
+                    wi[b, WI_ENTERED] += 1
+                    head = (head + 1) % q_len
+                    count -= 1
+                    wi[b, WI_HEAD_RIGHT + lane] = head
+                    wi[b, WI_COUNT_RIGHT + lane] = count
+        queue = 0
+        while queue < count and sched[b, lane, (head + queue) % q_len, SC_T] <= t:
+            queue += 1
+        wi[b, WI_QUEUE_RIGHT + lane] = queue
+        wi[b, WI_QUEUE_MAX] = max(wi[b, WI_QUEUE_MAX], queue)
+
+
+@kernel
+def ego_join(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    p: np.ndarray,
+) -> None:
+    """The ego becomes a right-lane vehicle once its body overlaps the lane."""
+    if vi[b, VI_ACTIVE, EGO] == 0:
+        return
+    if vi[b, VI_LANE, EGO] == RAMP and vf[b, VF_X, EGO] >= p[P_X_OVERLAP]:
+        vi[b, VI_LANE, EGO] = RIGHT
+        ll.insert(lanes, vf, wi, b, RIGHT, EGO)
+    if vi[b, VI_LANE, EGO] == RIGHT:
+        wf[b, WF_EGO_IN_LANE] += p[P_DT]
+    else:
+        wf[b, WF_EGO_IN_LANE] = 0.0
+
+
+@kernel
+def collisions(
+    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
+) -> tuple[bool, bool]:
+    """Overlapping consecutive vehicles of a lane collide (gaps from `neighbours`). Returns
+    whether the ego had a new collision and whether wrecks were towed away; the ego's partner
+    and whether it was the rear vehicle go to `WI_EGO_PARTNER` / `WI_EGO_REAR`. Mainline wrecks
+    are towed away at once (counted as background collisions); the ego's wreck and its partner
+    stay, flagged, until `next_ego`."""
+    ego_was_collided = vi[b, VI_COLLIDED, EGO] == 1
+    ego_hit = False
+    towed = 0
+    for lane in range(2):
+        for i in range(1, wi[b, WI_N_RIGHT + lane]):
+            rear = lanes[b, lane, i]
+            if vf[b, VF_GAP, rear] >= 0.0:
+                continue
+            front = lanes[b, lane, i - 1]
+            vi[b, VI_FLAGS, rear] |= EV_COLLIDED | EV_HIT
+            vi[b, VI_FLAGS, front] |= EV_COLLIDED | EV_HIT
+            if rear == EGO or front == EGO:
+                vi[b, VI_COLLIDED, rear] = 1
+                vi[b, VI_COLLIDED, front] = 1
+                if not ego_was_collided and not ego_hit:
+                    ego_hit = True
+                    wi[b, WI_EGO_PARTNER] = front if rear == EGO else rear
+                    wi[b, WI_EGO_REAR] = 1 if rear == EGO else 0
+            else:
+                vi[b, VI_FLAGS, rear] |= EV_TOW
+                vi[b, VI_FLAGS, front] |= EV_TOW
+                wi[b, WI_BG_COLLISIONS] += 1
+                towed += 1
+    if towed:
+        for lane in range(2):
+            i = 0
+            while i < wi[b, WI_N_RIGHT + lane]:
+                s = lanes[b, lane, i]
+                if vi[b, VI_FLAGS, s] & EV_TOW and vi[b, VI_COLLIDED, s] == 0:
+                    deactivate(vi, wi, lanes, b, s)
+                else:
+                    i += 1
+    return ego_hit, towed > 0
+
+
+@kernel
+def ego_episode(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    running: bool,
+    ego_hit: bool,
+) -> None:
+    """The running ego's clocks and the outcome it reaches in this step (`WI_STEP_OUTCOME`)."""
+    dt = p[P_DT]
+    if not running:
+        wf[b, WF_EGO_STALL] = 0.0
+        return
+    wf[b, WF_EGO_T] += dt
+    if vf[b, VF_V, EGO] < p[P_STALL_SPEED]:
+        wf[b, WF_EGO_STALL] += dt
+    else:
+        wf[b, WF_EGO_STALL] = 0.0
+    outcome = OUTCOME_NONE
+    if wf[b, WF_EGO_T] >= p[P_MAX_EPISODE] - 1e-9 or wf[b, WF_EGO_STALL] >= p[P_STALL_TIME] - 1e-9:
+        outcome = OUTCOME_TRUNCATED
+    if vf[b, VF_X, EGO] >= p[P_SUCCESS]:
+        outcome = OUTCOME_SUCCESS
+    if ego_hit:
+        outcome = OUTCOME_COLLISION
+    wi[b, WI_OUTCOME] = outcome
+    wi[b, WI_STEP_OUTCOME] = outcome
+
+
+@kernel
+def ego_gaps(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    b: int,
+    p: np.ndarray,
+) -> None:
+    """The ego's gap-front and gap-back vehicles: its right-lane neighbours (projected onto the
+    lane while it is on the ramp), within the sensing range. A missing one is a virtual vehicle
+    at the edge of the range driving at the speed limit."""
+    x_e = vf[b, VF_X, EGO]
+    if vi[b, VI_LANE, EGO] == RIGHT:
+        front, back = vi[b, VI_LEADER, EGO], vi[b, VI_FOLLOWER, EGO]
+    else:
+        front, back = ll.neighbours_at(lanes, vf, wi, b, RIGHT, x_e)
+    rng, length, v_limit = p[P_SENSING], p[P_LEN], p[P_V_LIMIT]
+    if front >= 0 and vf[b, VF_X, front] - x_e > rng:
+        front = -1
+    if back >= 0 and x_e - vf[b, VF_X, back] > rng:
+        back = -1
+    wi[b, WI_FRONT], wi[b, WI_BACK] = front, back
+    if front >= 0:
+        wf[b, WF_XF] = vf[b, VF_X, front]
+        wf[b, WF_DF] = vf[b, VF_X, front] - x_e - length
+        wf[b, WF_VF] = vf[b, VF_V, front]
+    else:
+        wf[b, WF_XF], wf[b, WF_DF], wf[b, WF_VF] = x_e + rng, rng, v_limit
+    if back >= 0:
+        wf[b, WF_XB] = vf[b, VF_X, back]
+        wf[b, WF_DB] = x_e - vf[b, VF_X, back] - length
+        wf[b, WF_VB] = vf[b, VF_V, back]
+    else:
+        wf[b, WF_XB], wf[b, WF_DB], wf[b, WF_VB] = x_e - rng, rng, v_limit
+
+
+@kernel
+def substep(
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    lanes: np.ndarray,
+    sched: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    ego_cmd: float,
+    roster: np.ndarray,
+    roster_cmd: np.ndarray,
+) -> bool:
+    """Advance world `b` by one simulator step (see the module docstring). Returns whether the
+    ego collided in this step. Needs the neighbours of the pre-step state (every call leaves
+    them computed)."""
+    wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR], wi[b, WI_STEP_OUTCOME] = -1, 0, OUTCOME_NONE
+    mark_controlled(vf, vi, b, p, roster, roster_cmd)
+    n_changes = 0
+    if wi[b, WI_STEPS] % int(p[P_LC_EVERY]) == 0:
+        n_changes = lane_change_decisions(vf, vi, wi, lanes, b, p)
+    wi[b, WI_VEH_STEPS] += advance(vf, vi, wf, wi, lanes, b, p, ego_cmd)
+    wf[b, WF_T] += p[P_DT]
+    wi[b, WI_STEPS] += 1
+    if n_changes:
+        apply_lane_changes(vf, vi, wi, lanes, b)
+    for lane in range(2):
+        ll.resort(lanes, vf, wi, b, lane)
+    exits(vf, vi, wi, lanes, b, p)
+    arrivals(vf, vi, wf, wi, lanes, sched, b, p)
+    ego_join(vf, vi, wf, wi, lanes, b, p)
+    running = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
+    neighbours(vf, vi, wi, lanes, b, p)
+    ego_hit, towed = collisions(vf, vi, wi, lanes, b, p)
+    if towed:
+        neighbours(vf, vi, wi, lanes, b, p)  # the towed wrecks are gone
+    ego_episode(vf, vi, wf, wi, b, p, running, ego_hit)
+    ego_gaps(vf, vi, wf, wi, lanes, b, p)
+    return ego_hit

@@ -1,0 +1,160 @@
+"""Every random draw of the simulator, made with seeded NumPy generators outside the kernels.
+
+Each world has four generators, spawned from one `numpy.random.SeedSequence`: the arrivals of
+the right lane, of the left lane, the ego departures, and the road filled at a reset. Arrivals
+and departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and the driver's
+parameters) into the world's `sched` ring, which the kernels consume; the stream of numbers a
+world sees is therefore fixed by its seed alone, whatever the batch it runs in, the action
+repeat, or when the chunks happen to be drawn.
+
+Seeds: `seed=s` for a batch of B worlds gives world i the sequence `SeedSequence(s,
+spawn_key=(i,))`; an explicit per-world seed s_i gives `SeedSequence(s_i, spawn_key=(0,))`, the
+same world as world 0 of a core seeded s_i (so B single worlds can reproduce one batch).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.sim.drivers import entry_speed
+from marlmerge.sim.layout import (
+    EGO_STREAM,
+    LEFT,
+    NEUTRAL,
+    RIGHT,
+    SC_COLS,
+    SC_POL,
+    SC_PROFILE,
+    SC_T,
+    SC_T_HW,
+    SC_V,
+    SC_V0,
+)
+
+CHUNK = 32
+"""Vehicles drawn per stream at a time."""
+FILL_STREAM = 3
+N_STREAMS = 4
+
+
+def world_seed_sequences(
+    batch_size: int, seed: int | Sequence[int] | None, rows: np.ndarray
+) -> list[np.random.SeedSequence]:
+    """The seed sequence of each world in `rows` (see the module docstring)."""
+    if seed is None:
+        return [np.random.SeedSequence() for _ in rows]
+    if isinstance(seed, int | np.integer):
+        return [np.random.SeedSequence(int(seed), spawn_key=(int(i),)) for i in rows]
+    seeds = list(seed)
+    if len(seeds) != batch_size:
+        raise ValueError(f"seed: need one seed per world ({batch_size}), got {len(seeds)}")
+    bad = [s for s in seeds if not isinstance(s, int | np.integer) or isinstance(s, bool)]
+    if bad:
+        raise ValueError(f"seed: per-world seeds must be integers, got {bad[0]!r}")
+    return [np.random.SeedSequence(int(seeds[i]), spawn_key=(0,)) for i in rows]
+
+
+class Streams:
+    """The generators of B worlds and what they draw."""
+
+    def __init__(self, cfg: ScenarioConfig, batch_size: int):
+        self.cfg = cfg
+        self.gens: list[list[np.random.Generator]] = [[] for _ in range(batch_size)]
+
+    def seed(self, rows: np.ndarray, sequences: list[np.random.SeedSequence]) -> None:
+        for b, seq in zip(rows, sequences, strict=True):
+            self.gens[b] = [np.random.default_rng(c) for c in seq.spawn(N_STREAMS)]
+
+    # ------------------------------------------------------------------ drawn vehicles
+    def _drivers(self, g: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
+        d = self.cfg.driver
+        v0 = g.uniform(*d.desired_speed_factor, size=n) * self.cfg.road.speed_limit_mps
+        headway = g.uniform(*d.time_headway_s, size=n)
+        politeness = g.uniform(*d.politeness, size=n)
+        return v0, headway, politeness
+
+    def _entry_speed(self, g: np.random.Generator, n: int) -> np.ndarray:
+        mean, std = self.cfg.traffic.entry_speed_mps
+        return np.clip(g.normal(mean, std, size=n), mean - 2 * std, mean + 2 * std)
+
+    def _profiles(self, g: np.random.Generator, n: int) -> np.ndarray:
+        mix = np.asarray(self.cfg.driver.mix)
+        return g.choice(3, size=n, p=mix / mix.sum()).astype(np.float64)
+
+    def arrivals(self, b: int, lane: int, t_last_s: float) -> np.ndarray:
+        """The next `CHUNK` arrivals of `lane` after `t_last_s`, [CHUNK, SC_COLS]."""
+        g = self.gens[b][lane]
+        flow = self.cfg.traffic.flow_vph_per_lane
+        out = np.empty((CHUNK, SC_COLS))
+        if flow > 0:
+            out[:, SC_T] = t_last_s + np.cumsum(g.exponential(3600.0 / flow, size=CHUNK))
+        else:
+            out[:, SC_T] = np.inf
+        out[:, SC_V] = self._entry_speed(g, CHUNK)
+        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(g, CHUNK)
+        out[:, SC_PROFILE] = self._profiles(g, CHUNK)
+        return out
+
+    def departures(self, b: int) -> np.ndarray:
+        """The next `CHUNK` egos: start speed and the driver they become once merged."""
+        g = self.gens[b][EGO_STREAM]
+        out = np.zeros((CHUNK, SC_COLS))
+        out[:, SC_V] = g.uniform(*self.cfg.ego.start_speed_mps, size=CHUNK)
+        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(g, CHUNK)
+        out[:, SC_PROFILE] = NEUTRAL
+        return out
+
+    def fill(self, b: int) -> dict[str, np.ndarray]:
+        """Mainline vehicles for a fresh road in steady flow: each lane filled from the exit
+        upstream with spacing speed x an exponential headway, at least a safe following distance
+        (jam gap + the longest desired headway), each entering at a speed its IDM can follow its
+        leader at without braking harder than b. Arrays of the kept vehicles, downstream first
+        per lane: x_m, v_mps, lane, v0_mps, headway_s, politeness, profile."""
+        cfg = self.cfg
+        g = self.gens[b][FILL_STREAM]
+        flow = cfg.traffic.flow_vph_per_lane
+        length, s0 = cfg.vehicle.length_m, cfg.driver.min_gap_m
+        road_len = cfg.road.x_exit_m - cfg.road.x_entrance_m
+        per_lane = int(np.ceil(road_len / (length + s0))) + 1
+        cols: dict[str, list[np.ndarray]] = {k: [] for k in _FILL_KEYS}
+        for lane in (RIGHT, LEFT):
+            h = g.exponential(3600.0 / flow, size=per_lane) if flow > 0 else np.zeros(per_lane)
+            v = self._entry_speed(g, per_lane)
+            v0, headway, politeness = self._drivers(g, per_lane)
+            profile = self._profiles(g, per_lane)
+            first = g.uniform()
+            if flow <= 0:
+                continue
+            space = np.maximum(v * h, length + s0 + v * cfg.driver.time_headway_s[1])
+            dist = np.cumsum(space) - space[0] + first * space[0]  # front bumpers from the exit
+            kept: list[int] = []
+            speeds: list[float] = []
+            for i in np.flatnonzero(dist < road_len):
+                v_i = v[i]
+                if kept:  # enter at a speed the vehicle's IDM can hold behind its leader
+                    j = kept[-1]
+                    gap = dist[i] - dist[j] - length
+                    v_i = entry_speed(v[i], gap, speeds[-1], v0[i], headway[i], *_idm(cfg))
+                if v_i >= 0.0:
+                    kept.append(int(i))
+                    speeds.append(float(v_i))
+            idx = np.array(kept, dtype=np.int64)
+            cols["x_m"].append(cfg.road.x_exit_m - dist[idx])
+            cols["v_mps"].append(np.array(speeds))
+            cols["lane"].append(np.full(idx.size, lane, dtype=np.float64))
+            cols["v0_mps"].append(v0[idx])
+            cols["headway_s"].append(headway[idx])
+            cols["politeness"].append(politeness[idx])
+            cols["profile"].append(profile[idx])
+        return {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+
+
+_FILL_KEYS = ("x_m", "v_mps", "lane", "v0_mps", "headway_s", "politeness", "profile")
+
+
+def _idm(cfg: ScenarioConfig) -> tuple[float, float, float, float]:
+    d = cfg.driver
+    return d.accel_mps2, d.comfort_brake_mps2, d.min_gap_m, d.delta

@@ -1,0 +1,105 @@
+"""Every named reward term against its formula, through the kernel's own functions."""
+
+import math
+
+import pytest
+
+from marlmerge.config import InteractionConfig, ScenarioConfig
+from marlmerge.spec.reward import (
+    INTERACTION_TERMS,
+    ego_step_terms,
+    highway_step_terms,
+    proximity,
+    speed_polygon,
+)
+
+CFG = ScenarioConfig()
+R, INTER = CFG.reward, CFG.interaction
+V_LIMIT = CFG.road.speed_limit_mps
+
+
+def test_proximity_and_speed_polygon_shapes():
+    assert proximity(20.0, 10.0) == 0.0
+    assert proximity(0.0, 10.0) == 1.0
+    assert proximity(5.0, 10.0) == pytest.approx(0.25)
+    assert speed_polygon(0.0, V_LIMIT, 0.6, 5.0) == pytest.approx(1.0)
+    assert speed_polygon(0.8 * V_LIMIT, V_LIMIT, 0.6, 5.0) == 0.0
+    assert speed_polygon(V_LIMIT + 2.5, V_LIMIT, 0.6, 5.0) == pytest.approx(0.5)
+
+
+def test_each_ego_term_follows_its_formula():
+    v, v_back, d_f, d_b = 20.0, 25.0, 10.0, 12.0
+    t = ego_step_terms(CFG, -2.0, -50.0, v, d_f, d_b, v_back, collided=True)
+    safe_f = R.safe_min_gap_m + R.safe_headway_s * v
+    safe_b = R.safe_min_gap_m + R.safe_headway_s * v_back
+    assert t["acceleration"] == pytest.approx(-R.w_accel * 2.0)
+    assert t["gap_front"] == pytest.approx(-R.w_front * (1 - d_f / safe_f) ** 2)
+    assert t["gap_back"] == pytest.approx(-R.w_back * (1 - d_b / safe_b) ** 2)
+    assert t["speed"] == 0.0  # 20 m/s lies in the dead band [0.6 v_limit, v_limit]
+    assert t["collision"] == -R.collision_penalty
+    slow = ego_step_terms(CFG, 0.0, -50.0, 5.0, 100.0, 100.0, 25.0)
+    v_low = R.speed_low_fraction * V_LIMIT
+    assert slow["speed"] == pytest.approx(-R.w_speed * (v_low - 5.0) / v_low)
+    assert slow["gap_front"] == slow["gap_back"] == slow["collision"] == 0.0
+
+
+def test_ego_distance_terms_are_off_far_upstream():
+    far = ego_step_terms(CFG, 0.0, R.distance_active_from_m - 1.0, 20.0, 1.0, 1.0, 25.0)
+    near = ego_step_terms(CFG, 0.0, R.distance_active_from_m, 20.0, 1.0, 1.0, 25.0)
+    assert far["gap_front"] == far["gap_back"] == 0.0
+    assert near["gap_front"] < 0.0 and near["gap_back"] < 0.0
+
+
+def test_each_highway_driving_term_follows_its_formula():
+    v, gap = 20.0, 8.0
+    t = highway_step_terms(CFG, a_mps2=-1.5, v_mps=v, gap_m=gap)
+    safe = R.safe_min_gap_m + R.safe_headway_s * v
+    assert t["acceleration"] == pytest.approx(-R.w_accel * 1.5)
+    assert t["gap_front"] == pytest.approx(-R.w_front * (1 - gap / safe) ** 2)
+    assert t["speed"] == pytest.approx(-R.w_highway_speed * (V_LIMIT - v) / V_LIMIT)
+    fast = highway_step_terms(CFG, v_mps=V_LIMIT + 5.0)
+    assert fast["speed"] == pytest.approx(-R.w_highway_speed * 5.0 / R.speed_over_scale_mps)
+    assert highway_step_terms(CFG, collided=True)["collision"] == -INTER.own_collision_penalty
+    assert all(v == 0.0 for k, v in highway_step_terms(CFG).items() if k != "speed")
+
+
+def _interaction(**kw):
+    return {k: v for k, v in highway_step_terms(CFG, **kw).items() if k in INTERACTION_TERMS}
+
+
+def test_interaction_terms_are_zero_when_the_agent_did_not_contribute():
+    assert not any(_interaction(ego_truncated=True).values())  # not a gap vehicle
+    assert not any(_interaction(ego_a_mps2=-4.5, is_back=True).values())  # hard brake, not front
+    assert not any(_interaction(is_front=True, is_back=False).values())  # no failure at all
+    assert not any(_interaction(collided=True).values())  # a collision with someone else
+
+
+def test_each_interaction_term_credits_the_contributing_agent():
+    dt = CFG.sim.dt_s
+    t = _interaction(hit_ego=True, collided=True, ego_rear=True)  # the ego ran into it
+    assert t["ego_collision"] == INTER.w_ego_collision
+    t = _interaction(ego_a_mps2=-INTER.hard_brake_mps2, is_front=True)
+    assert t["ego_hard_brake"] == pytest.approx(INTER.w_ego_hard_brake_per_s * dt)
+    milder = _interaction(ego_a_mps2=-INTER.hard_brake_mps2 + 0.1, is_front=True)
+    assert milder["ego_hard_brake"] == 0
+    assert _interaction(ego_truncated=True, is_back=True)["ego_stall"] == INTER.w_ego_stall
+    t = _interaction(is_front=True, is_back=True, close_front=0.5, close_back=0.25)
+    assert t["ego_unsafe_gap"] == pytest.approx(INTER.w_ego_unsafe_gap_per_s * dt * 0.75)
+    coop = CFG.replace(**{"interaction.sign": -1.0})
+    flipped = highway_step_terms(coop, hit_ego=True, collided=True, ego_rear=True)
+    assert flipped["ego_collision"] == -INTER.w_ego_collision
+
+
+def test_blame_in_a_collision_with_the_ego():
+    # the agent rear-ends an ego that joined the lane 5 s ago: its own fault, no credit
+    t = highway_step_terms(CFG, hit_ego=True, collided=True, ego_rear=False, ego_in_lane_s=5.0)
+    assert t["ego_collision"] == 0.0 and t["collision"] == -INTER.own_collision_penalty
+    # the ego cut in 0.3 s before: the ego is to blame, the agent is credited and not charged
+    grace = InteractionConfig().cut_in_grace_s
+    t = highway_step_terms(
+        CFG, hit_ego=True, collided=True, ego_rear=False, ego_in_lane_s=0.3 * grace
+    )
+    assert t["ego_collision"] == INTER.w_ego_collision and t["collision"] == 0.0
+    assert math.isclose(
+        highway_step_terms(CFG, hit_ego=True, collided=True, ego_rear=True)["collision"], 0.0
+    )
