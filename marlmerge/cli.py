@@ -1,4 +1,4 @@
-"""Command line: `marlmerge train | cotrain | evaluate | grid | plot | simulate`.
+"""Command line: `marlmerge train | cotrain | evaluate | grid | plot | simulate | validate`.
 
 `marlmerge --help` lists them."""
 
@@ -266,6 +266,27 @@ def plot_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def validate_cmd(args: argparse.Namespace) -> int:
+    """Run the validation scenarios in marlmerge and SUMO and write the report."""
+    from marlmerge.env import resolve_config
+    from marlmerge.validation import sumo
+    from marlmerge.validation.report import validate
+
+    if args.sumo and not sumo.available():
+        raise ValueError('--sumo: SUMO is not installed (pip install -e ".[sumo]")')
+    use_sumo = True if args.sumo else (False if args.reference else None)
+    if use_sumo is None and not sumo.available():
+        print("SUMO is not installed: comparing against the committed SUMO reference outputs")
+    result = validate(resolve_config(args.scenario), args.out, use_sumo)
+    for name, c in result["car_following"].items():
+        print(f"car following {name}: max position difference {c['max_pos_diff_m']:.1e} m")
+    for flow, row in result["flow_sweep"].items():
+        ratios = ", ".join(f"{k} {v['ratio']:.3f}" for k, v in row.items() if "ok" in v)
+        print(f"flow {flow} veh/h/lane, marlmerge / SUMO: {ratios}")
+    print(f"all targets met: {result['all_targets_met']}; wrote {args.out}/README.md")
+    return 0 if result["all_targets_met"] else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="marlmerge", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -357,6 +378,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--out", default="runs/simulate", help="output folder")
     s.set_defaults(func=simulate)
+
+    v = sub.add_parser("validate", help="compare the simulator with SUMO, write docs/validation")
+    v.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
+    v.add_argument("--out", default="docs/validation", help="report folder")
+    mode = v.add_mutually_exclusive_group()
+    mode.add_argument("--sumo", action="store_true", help="require SUMO (default: if installed)")
+    mode.add_argument(
+        "--reference", action="store_true", help="use the committed SUMO outputs even if installed"
+    )
+    v.set_defaults(func=validate_cmd)
     return p
 
 

@@ -73,33 +73,33 @@ def idm_equilibrium_gap_m(
     return (s0_m + v_mps * headway_s) / math.sqrt(1.0 - (v_mps / v0_mps) ** delta)
 
 
+@kernel(inline=True)
+def desired_gap_m(
+    v_mps: float, v_lead_mps: float, headway_s: float, a_mps2: float, b_mps2: float, s0_m: float
+) -> float:
+    """IDM's desired gap s* = s0 + max(0, v T + v (v - v_lead) / (2 sqrt(a b)))."""
+    dyn = v_mps * headway_s + v_mps * (v_mps - v_lead_mps) / (2.0 * math.sqrt(a_mps2 * b_mps2))
+    return s0_m + max(dyn, 0.0)
+
+
 @kernel
 def entry_speed(
     v_wanted_mps: float,
     gap_m: float,
     v_lead_mps: float,
-    v0_mps: float,
     headway_s: float,
     a_mps2: float,
     b_mps2: float,
     s0_m: float,
-    delta: float,
 ) -> float:
     """The speed at which a vehicle may enter `gap_m` behind a leader driving `v_lead_mps`, or -1
-    if it must wait: its drawn speed `v_wanted_mps` if its own IDM could follow from there
-    braking no harder than its comfortable deceleration b; otherwise the leader's speed (the
-    stream's speed: upstream traffic is that slow too) if slower and safe in the same sense;
-    otherwise it waits. It never enters slower than the vehicle ahead, so a short queue cannot
-    make the entrance creep."""
-    if gap_m <= 0.0:
-        return -1.0
-    if idm(v_wanted_mps, gap_m, v_lead_mps, v0_mps, headway_s, a_mps2, b_mps2, s0_m, delta) >= (
-        -b_mps2
-    ):
+    if it must wait: its drawn speed `v_wanted_mps` once the gap is at least its IDM desired gap
+    s* at that speed, as SUMO inserts IDM vehicles with a given departure speed. At s*, IDM
+    brakes at most a (v/v0)^delta (entry speeds are at most v0, so at most a), never harder
+    than the comfortable deceleration b. Entering slower instead (at a speed that is safe now)
+    would let a queue creep in at walking pace and fill the road far denser than SUMO does."""
+    if gap_m >= desired_gap_m(v_wanted_mps, v_lead_mps, headway_s, a_mps2, b_mps2, s0_m):
         return v_wanted_mps
-    v = min(v_wanted_mps, v_lead_mps)
-    if idm(v, gap_m, v_lead_mps, v0_mps, headway_s, a_mps2, b_mps2, s0_m, delta) >= -b_mps2:
-        return v
     return -1.0
 
 

@@ -534,12 +534,10 @@ def arrivals(
                     sched[b, lane, head, SC_V],
                     gap,
                     vf[b, VF_V, tail],
-                    sched[b, lane, head, SC_V0],
                     sched[b, lane, head, SC_T_HW],
                     p[P_A],
                     p[P_B],
                     p[P_S0],
-                    p[P_DELTA],
                 )
             if v_enter >= 0.0:
                 s = free_slot(vi, b)

@@ -85,7 +85,8 @@ class Streams:
         return g.choice(3, size=n, p=mix / mix.sum()).astype(np.float64)
 
     def arrivals(self, b: int, lane: int, t_last_s: float) -> np.ndarray:
-        """The next `CHUNK` arrivals of `lane` after `t_last_s`, [CHUNK, SC_COLS]."""
+        """The next `CHUNK` arrivals of `lane` after `t_last_s`, [CHUNK, SC_COLS]. The entry speed
+        is drawn from `traffic.entry_speed_mps` and capped at the driver's desired speed."""
         g = self.gens[b][lane]
         flow = self.cfg.traffic.flow_vph_per_lane
         out = np.empty((CHUNK, SC_COLS))
@@ -96,6 +97,7 @@ class Streams:
         out[:, SC_V] = self._entry_speed(g, CHUNK)
         out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(g, CHUNK)
         out[:, SC_PROFILE] = self._profiles(g, CHUNK)
+        out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])  # nobody enters above its v0
         return out
 
     def departures(self, b: int) -> np.ndarray:
@@ -110,8 +112,8 @@ class Streams:
     def fill(self, b: int) -> dict[str, np.ndarray]:
         """Mainline vehicles for a fresh road in steady flow: each lane filled from the exit
         upstream with spacing speed x an exponential headway, at least a safe following distance
-        (jam gap + the longest desired headway), each entering at a speed its IDM can follow its
-        leader at without braking harder than b. Arrays of the kept vehicles, downstream first
+        (jam gap + the longest desired headway), each at a speed `entry_speed` allows behind its
+        leader. Arrays of the kept vehicles, downstream first
         per lane: x_m, v_mps, lane, v0_mps, headway_s, politeness, profile."""
         cfg = self.cfg
         g = self.gens[b][FILL_STREAM]
@@ -124,6 +126,7 @@ class Streams:
             h = g.exponential(3600.0 / flow, size=per_lane) if flow > 0 else np.zeros(per_lane)
             v = self._entry_speed(g, per_lane)
             v0, headway, politeness = self._drivers(g, per_lane)
+            v = np.minimum(v, v0)
             profile = self._profiles(g, per_lane)
             first = g.uniform()
             if flow <= 0:
@@ -137,7 +140,7 @@ class Streams:
                 if kept:  # enter at a speed the vehicle's IDM can hold behind its leader
                     j = kept[-1]
                     gap = dist[i] - dist[j] - length
-                    v_i = entry_speed(v[i], gap, speeds[-1], v0[i], headway[i], *_idm(cfg))
+                    v_i = entry_speed(v[i], gap, speeds[-1], headway[i], *_idm(cfg))
                 if v_i >= 0.0:
                     kept.append(int(i))
                     speeds.append(float(v_i))
@@ -155,6 +158,6 @@ class Streams:
 _FILL_KEYS = ("x_m", "v_mps", "lane", "v0_mps", "headway_s", "politeness", "profile")
 
 
-def _idm(cfg: ScenarioConfig) -> tuple[float, float, float, float]:
+def _idm(cfg: ScenarioConfig) -> tuple[float, float, float]:
     d = cfg.driver
-    return d.accel_mps2, d.comfort_brake_mps2, d.min_gap_m, d.delta
+    return d.accel_mps2, d.comfort_brake_mps2, d.min_gap_m

@@ -1,0 +1,185 @@
+"""The validation scenarios in SUMO (the optional `[sumo]` extra: eclipse-sumo, libsumo, sumolib).
+
+The networks are built from the `ScenarioConfig` with netconvert, on the same axis: a road whose
+lane positions are marlmerge's road positions (0 at the entrance). Drivers use SUMO's IDM
+(`carFollowModel="IDM"`, ballistic update) with marlmerge's parameters: accel = a, decel = b,
+minGap = s0, tau = T, delta, emergencyDecel = the vehicle's braking limit, length; the desired
+speed v0 is the lane speed times a per-vehicle `speedFactor`. Lane changes use SUMO's own
+model (LC2013). A SUMO vehicle inserted at time 0 stands at its start position after the first
+step; samples are aligned so that sample 0 is that start in both simulators.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.validation.measure import FlowSamples
+from marlmerge.validation.scenarios import (
+    CF_ROAD_M,
+    CarFollowingCase,
+    Trajectories,
+    drawn_arrivals,
+)
+
+
+def available() -> bool:
+    """True when libsumo and sumolib can be imported (the `[sumo]` extra is installed)."""
+    try:
+        import libsumo  # noqa: F401
+        import sumolib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def sumo_version() -> str:
+    import libsumo
+
+    return str(libsumo.getVersion()[1]).replace("SUMO ", "")
+
+
+def _netconvert(
+    folder: Path, length_m: float, n_lanes: int, speed_mps: float, width_m: float
+) -> Path:
+    import sumolib
+
+    (folder / "road.nod.xml").write_text(
+        f'<nodes><node id="a" x="0" y="0"/><node id="b" x="{length_m}" y="0"/></nodes>'
+    )
+    (folder / "road.edg.xml").write_text(
+        f'<edges><edge id="road" from="a" to="b" numLanes="{n_lanes}" speed="{speed_mps}" '
+        f'width="{width_m}"/></edges>'
+    )
+    net = folder / "road.net.xml"
+    subprocess.run(
+        [
+            sumolib.checkBinary("netconvert"),
+            "-n", str(folder / "road.nod.xml"), "-e", str(folder / "road.edg.xml"),
+            "-o", str(net), "--no-turnarounds",
+        ],
+        check=True,
+        capture_output=True,
+    )  # fmt: skip
+    return net
+
+
+def _vtype(cfg: ScenarioConfig, vid: str, speed_factor: float, tau_s: float) -> str:
+    d, v = cfg.driver, cfg.vehicle
+    return (
+        f'<vType id="{vid}" carFollowModel="IDM" accel="{d.accel_mps2}" '
+        f'decel="{d.comfort_brake_mps2}" emergencyDecel="{v.max_brake_mps2}" '
+        f'minGap="{d.min_gap_m}" tau="{float(tau_s)!r}" delta="{d.delta}" length="{v.length_m}" '
+        f'width="{v.width_m}" maxSpeed="100" speedFactor="{float(speed_factor)!r}" speedDev="0" '
+        f'sigma="0"/>'
+    )
+
+
+def _start(net: Path, routes: Path, dt_s: float, seed: int) -> None:
+    import libsumo
+
+    libsumo.start(
+        [
+            "sumo", "-n", str(net), "-r", str(routes), "--step-length", str(dt_s),
+            "--step-method.ballistic", "--no-step-log", "--no-warnings", "--seed", str(seed),
+            "--collision.action", "warn",
+        ]
+    )  # fmt: skip
+
+
+def run_car_following(case: CarFollowingCase, cfg: ScenarioConfig) -> Trajectories:
+    """The case in SUMO: the leader's speed is set every step (checks off), the follower
+    drives by SUMO's IDM."""
+    import libsumo as traci
+
+    dt = cfg.sim.dt_s
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        net = _netconvert(folder, CF_ROAD_M, 1, 100.0, cfg.road.lane_width_m)
+        lines = ['<routes><route id="r" edges="road"/>']
+        lines.append(_vtype(cfg, "follower_t", case.v0_mps / 100.0, case.headway_s))
+        if case.leader_pos_m is not None:
+            lines.append(_vtype(cfg, "leader_t", 1.0, 1.0))
+            lines.append(
+                f'<vehicle id="leader" type="leader_t" route="r" depart="0" '
+                f'departPos="{case.leader_pos_m}" departSpeed="{case.leader_v_mps}"/>'
+            )
+        lines.append(
+            f'<vehicle id="follower" type="follower_t" route="r" depart="0" '
+            f'departPos="{case.follower_pos_m}" departSpeed="{case.follower_v_mps}"/>'
+        )
+        lines.append("</routes>")
+        routes = folder / "cf.rou.xml"
+        routes.write_text("\n".join(lines))
+        _start(net, routes, dt, 0)
+        try:
+            traci.simulationStep()  # inserts the vehicles at their start
+            n = int(round(case.duration_s / dt))
+            rows = np.full((n + 1, 4), np.nan)
+            has_leader = case.leader_pos_m is not None
+            if has_leader:
+                traci.vehicle.setSpeedMode("leader", 0)
+            for i in range(n + 1):
+                rows[i, 0] = traci.vehicle.getLanePosition("follower")
+                rows[i, 1] = traci.vehicle.getSpeed("follower")
+                if has_leader:
+                    v = traci.vehicle.getSpeed("leader")
+                    rows[i, 2:4] = traci.vehicle.getLanePosition("leader"), v
+                    target = max(v + case.leader_accel_at(i * dt) * dt, 0.0)
+                    traci.vehicle.setSpeed("leader", target)
+                if i < n:
+                    traci.simulationStep()
+        finally:
+            traci.close()
+    return Trajectories(np.arange(n + 1) * dt, *rows.T)
+
+
+def run_flow(cfg: ScenarioConfig, seed: int, duration_s: float) -> FlowSamples:
+    """The mainline alone in SUMO, fed the arrivals marlmerge draws for a world seeded `seed`:
+    each vehicle departs at its drawn time in its lane, at its drawn speed (`departSpeed`: SUMO
+    delays the insertion until that speed is safe), with its drawn desired speed and headway."""
+    import libsumo as traci
+
+    dt = cfg.sim.dt_s
+    road = cfg.road
+    length = road.x_exit_m - road.x_entrance_m
+    v_limit = road.speed_limit_mps
+    arrivals = drawn_arrivals(cfg, seed, duration_s)
+    rows = [(t, lane, v, v0, hw) for lane, a in enumerate(arrivals) for t, v, v0, hw in a]
+    rows.sort()
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        net = _netconvert(folder, length, 2, v_limit, road.lane_width_m)
+        lines = ['<routes><route id="r" edges="road"/>']
+        for i, (_, _, _, v0, hw) in enumerate(rows):
+            lines.append(_vtype(cfg, f"t{i}", v0 / v_limit, hw))
+        for i, (t, lane, v, v0, _) in enumerate(rows):
+            v = float(min(v, v0 * (1 - 1e-12)))  # <= v0 also after rounding
+            lines.append(
+                f'<vehicle id="v{i}" type="t{i}" route="r" depart="{t:.1f}" '
+                f'departLane="{lane}" departPos="0" departSpeed="{v!r}"/>'
+            )
+        lines.append("</routes>")
+        routes = folder / "flow.rou.xml"
+        routes.write_text("\n".join(lines))
+        _start(net, routes, dt, seed)
+        parts = []
+        try:
+            for i in range(int(round(duration_s / dt))):
+                traci.simulationStep()
+                ids = traci.vehicle.getIDList()
+                if not ids:
+                    continue
+                t = np.full(len(ids), (i + 1) * dt)
+                vid = np.array([int(v[1:]) for v in ids])
+                lane = np.array([traci.vehicle.getLaneIndex(v) for v in ids])
+                pos = np.array([traci.vehicle.getLanePosition(v) for v in ids])
+                speed = np.array([traci.vehicle.getSpeed(v) for v in ids])
+                parts.append((t, vid, lane, pos, speed))
+        finally:
+            traci.close()
+    return FlowSamples(*(np.concatenate([p[j] for p in parts]) for j in range(5)))
