@@ -37,7 +37,7 @@ def test_scripted_traffic_runs_10000_steps_without_collision(mix):
     # waits long at the entrance (only Poisson clumps queue)
     assert np.array_equal(st.n_active - st.entered + st.exited, conserved)
     assert st.max_queue.max() <= 8
-    assert (st.entry_delay_s / st.entered).max() < 1.0
+    assert (st.entry_delay_s / st.entered).max() < 3.0
     # throughput over 1000 s and 2 lanes matches the configured arrival flow within 10 %
     expected = 4 * 2 * cfg.traffic.flow_vph_per_lane * 1000.0 / 3600.0
     assert exits == pytest.approx(expected, rel=0.10)

@@ -109,6 +109,12 @@ class TrafficCore:
         self._no_roster = Roster(np.zeros((L.RO_ROWS, batch_size, 0), dtype=np.int64))
         self._no_cmd = np.zeros((batch_size, 0))
         self._all_worlds = np.ones(batch_size, dtype=bool)
+        if self.parallel:  # a few chunks of worlds per thread
+            self._kernel = kernels.rollout_parallel
+            self._worlds: tuple[int, ...] = (min(batch_size, 8 * numba.get_num_threads()),)
+        else:
+            self._kernel, self._worlds = kernels.rollout, (0, batch_size)
+        self._called = False
         self._served_k = -1
         self.state = TrafficState(self)
         timer = _announce_compilation("core")
@@ -366,13 +372,9 @@ class TrafficCore:
         trace = np.empty((b, k, L.TR_COLS))
         ego_obs = np.empty((b, len(EGO_FEATURES)), dtype=np.float32)
         hw_obs = np.empty((b, n_agents, len(HIGHWAY_FEATURES)), dtype=np.float32)
-        if self.parallel:  # a few chunks of worlds per thread
-            fn, worlds = kernels.rollout_parallel, (min(b, 8 * numba.get_num_threads()),)
-        else:
-            fn, worlds = kernels.rollout, (0, b)
-        timer = _announce_compilation("parallel" if self.parallel else "serial")
-        status = fn(
-            *worlds,
+        timer = None if self._called else _announce_compilation(repr(self._kernel))
+        status = self._kernel(
+            *self._worlds,
             self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched, self.params, k,
             self._all_worlds if step_mask is None else step_mask,
             ego_cmd, roster.rows, np.ascontiguousarray(roster_cmd, dtype=np.float64),
@@ -380,23 +382,26 @@ class TrafficCore:
         )  # fmt: skip
         if timer is not None:
             timer.cancel()
+        self._called = True
         if status >= kernels.OVERFLOW:
             self._check_overflow()
         if status:
             self._serve(k)
+        call = self.wi[:, L.WI_CALL].T.copy()  # [5, B]: what the call did, per world
+        no_agents = _NO_AGENTS[:b]
         return Rollout(
-            substeps=self.wi[:, L.WI_SUBSTEPS].copy(),
-            ego_steps=self.wi[:, L.WI_EGO_STEPS].copy(),
-            ego_outcome=self.wi[:, L.WI_STEP_OUTCOME].copy(),
+            substeps=call[L.WI_SUBSTEPS - L.WI_STEP_OUTCOME],
+            ego_steps=call[L.WI_EGO_STEPS - L.WI_STEP_OUTCOME],
+            ego_outcome=call[0],
             ego_terms=ego_terms,
             trace=trace,
             ego_obs=ego_obs,
             hw_terms=hw_terms,
             hw_obs=hw_obs,
-            left_road=(mask_before != 0) & ~roster.mask if n_agents else _NO_AGENTS[:b],
-            exited=roster.exited if n_agents else _NO_AGENTS[:b],
-            ego_partner=self.wi[:, L.WI_EGO_PARTNER].copy(),
-            ego_rear=self.wi[:, L.WI_EGO_REAR] != 0,
+            left_road=(mask_before != 0) & ~roster.mask if n_agents else no_agents,
+            exited=roster.exited if n_agents else no_agents,
+            ego_partner=call[L.WI_EGO_PARTNER - L.WI_STEP_OUTCOME],
+            ego_rear=call[L.WI_EGO_REAR - L.WI_STEP_OUTCOME] != 0,
         )
 
     def _check_overflow(self) -> None:

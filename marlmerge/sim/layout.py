@@ -107,11 +107,11 @@ road as a mainline vehicle."""
     WI_QUEUE_RIGHT,
     WI_QUEUE_LEFT,
     WI_QUEUE_MAX,
-    WI_EGO_PARTNER,
-    WI_EGO_REAR,
-    WI_STEP_OUTCOME,
     WI_OVERFLOW,
     WI_VEH_STEPS,
+    WI_STEP_OUTCOME,
+    WI_EGO_PARTNER,
+    WI_EGO_REAR,
     WI_SUBSTEPS,
     WI_EGO_STEPS,
 ) = range(28)
@@ -119,11 +119,12 @@ WI_ROWS = 28
 """ego_outcome (OUTCOME_*), ego_count, next_id, background_collisions, steps (simulator steps of
 this world), entered, exited (vehicles in / out since reset), lane-list lengths (right, left),
 the ego's gap-front and gap-back slots (-1 none), active vehicles, ring heads and counts of the
-three `sched` streams, entrance queues (right, left) and the longest queue since reset, the
-ego's collision partner and whether it was the rear vehicle (last call), the outcome reached in
-the last call (0 if none), an overflow flag (a kernel found no free slot: a bug), vehicle-steps
-simulated since reset, simulator steps run in the last call, and how many of them the ego was
-running at (0 when it was not running at the start of the call)."""
+three `sched` streams, entrance queues (right, left) and the longest queue since reset, an
+overflow flag (a kernel found no free slot: a bug), vehicle-steps simulated since reset; and
+what the last call did (`WI_CALL`): the outcome reached (0 if none), the ego's collision
+partner and whether it was the rear vehicle, simulator steps run, and how many of them the ego
+was running at (0 when it was not running at the start of the call)."""
+WI_CALL = slice(WI_STEP_OUTCOME, WI_EGO_STEPS + 1)
 assert WI_N_LEFT == WI_N_RIGHT + 1 and WI_HEAD_LEFT == WI_HEAD_RIGHT + 1  # indexed as base + lane
 assert WI_COUNT_LEFT == WI_COUNT_RIGHT + 1 and WI_QUEUE_LEFT == WI_QUEUE_RIGHT + 1
 assert WI_HEAD_EGO == WI_HEAD_RIGHT + EGO_STREAM and WI_COUNT_EGO == WI_COUNT_RIGHT + EGO_STREAM

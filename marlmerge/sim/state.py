@@ -97,7 +97,7 @@ class EgoGaps:
     v_back_mps: np.ndarray  # speed (speed limit if none)
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class StepEvents:
     """What happened in one call of the core (one simulator step for `TrafficCore.step`)."""
 
@@ -140,7 +140,7 @@ class Roster:
         return self.rows.shape[2]
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Rollout:
     """One call of `TrafficCore.rollout`: up to k simulator steps of every world.
 

@@ -138,31 +138,36 @@ def run_car_following(case: CarFollowingCase, cfg: ScenarioConfig) -> Trajectori
     return Trajectories(np.arange(n + 1) * dt, *rows.T)
 
 
+def _mainline_routes(cfg: ScenarioConfig, seed: int, duration_s: float, route: str) -> list[str]:
+    """vTypes and vehicles of the arrivals marlmerge draws for a world seeded `seed`: each
+    departs at its drawn time in its lane, at its drawn speed (`departSpeed`: SUMO delays the
+    insertion until that speed is safe), with its drawn desired speed and headway."""
+    v_limit = cfg.road.speed_limit_mps
+    arrivals = drawn_arrivals(cfg, seed, duration_s)
+    rows = sorted((t, lane, v, v0, hw) for lane, a in enumerate(arrivals) for t, v, v0, hw in a)
+    lines = [_vtype(cfg, f"t{i}", v0 / v_limit, hw) for i, (_, _, _, v0, hw) in enumerate(rows)]
+    for i, (t, lane, v, v0, _) in enumerate(rows):
+        v = float(min(v, v0 * (1 - 1e-12)))  # <= v0 also after rounding
+        lines.append(
+            f'<vehicle id="v{i}" type="t{i}" route="{route}" depart="{t:.1f}" '
+            f'departLane="{lane}" departPos="0" departSpeed="{v!r}"/>'
+        )
+    return lines
+
+
 def run_flow(cfg: ScenarioConfig, seed: int, duration_s: float) -> FlowSamples:
-    """The mainline alone in SUMO, fed the arrivals marlmerge draws for a world seeded `seed`:
-    each vehicle departs at its drawn time in its lane, at its drawn speed (`departSpeed`: SUMO
-    delays the insertion until that speed is safe), with its drawn desired speed and headway."""
+    """The mainline alone in SUMO, fed the arrivals marlmerge draws for a world seeded `seed`
+    (`_mainline_routes`), every vehicle sampled every step."""
     import libsumo as traci
 
     dt = cfg.sim.dt_s
     road = cfg.road
     length = road.x_exit_m - road.x_entrance_m
-    v_limit = road.speed_limit_mps
-    arrivals = drawn_arrivals(cfg, seed, duration_s)
-    rows = [(t, lane, v, v0, hw) for lane, a in enumerate(arrivals) for t, v, v0, hw in a]
-    rows.sort()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        net = _netconvert(folder, length, 2, v_limit, road.lane_width_m)
+        net = _netconvert(folder, length, 2, road.speed_limit_mps, road.lane_width_m)
         lines = ['<routes><route id="r" edges="road"/>']
-        for i, (_, _, _, v0, hw) in enumerate(rows):
-            lines.append(_vtype(cfg, f"t{i}", v0 / v_limit, hw))
-        for i, (t, lane, v, v0, _) in enumerate(rows):
-            v = float(min(v, v0 * (1 - 1e-12)))  # <= v0 also after rounding
-            lines.append(
-                f'<vehicle id="v{i}" type="t{i}" route="r" depart="{t:.1f}" '
-                f'departLane="{lane}" departPos="0" departSpeed="{v!r}"/>'
-            )
+        lines += _mainline_routes(cfg, seed, duration_s, "r")
         lines.append("</routes>")
         routes = folder / "flow.rou.xml"
         routes.write_text("\n".join(lines))
@@ -183,3 +188,90 @@ def run_flow(cfg: ScenarioConfig, seed: int, duration_s: float) -> FlowSamples:
         finally:
             traci.close()
     return FlowSamples(*(np.concatenate([p[j] for p in parts]) for j in range(5)))
+
+
+class RampRoad:
+    """The scenario's road with its ramp in SUMO, for speed comparisons: the two mainline lanes
+    fed by marlmerge's drawn arrivals, and a ramp vehicle sent whenever the previous one has
+    left the ramp and the merge zone (one merging vehicle at a time, as in marlmerge).
+
+        with RampRoad(cfg, duration_s=3600) as road:
+            road.step()              # one simulator step, the ramp bookkeeping included
+    """
+
+    def __init__(self, cfg: ScenarioConfig, duration_s: float, seed: int = 0):
+        self.cfg, self.duration_s, self.seed = cfg, duration_s, seed
+        self._tmp: tempfile.TemporaryDirectory | None = None
+        self.egos = 0
+
+    def __enter__(self) -> RampRoad:
+        import libsumo as traci
+        import sumolib
+
+        cfg, road = self.cfg, self.cfg.road
+        self._tmp = tempfile.TemporaryDirectory()
+        folder = Path(self._tmp.name)
+        x0, zone, v = road.x_entrance_m, road.x_zone_start_m, road.speed_limit_mps
+        y_ramp = -road.ramp_offset_m * 2
+        (folder / "n.nod.xml").write_text(
+            f'<nodes><node id="in" x="{x0}" y="0"/><node id="zone" x="{zone}" y="0"/>'
+            f'<node id="merge" x="0" y="0"/><node id="out" x="{road.x_exit_m}" y="0"/>'
+            f'<node id="ramp" x="{road.x_ramp_start_m}" y="{y_ramp}"/></nodes>'
+        )
+        (folder / "n.edg.xml").write_text(
+            f'<edges><edge id="up" from="in" to="zone" numLanes="2" speed="{v}"/>'
+            f'<edge id="zone" from="zone" to="merge" numLanes="3" speed="{v}"/>'
+            f'<edge id="down" from="merge" to="out" numLanes="2" speed="{v}"/>'
+            f'<edge id="ramp" from="ramp" to="zone" numLanes="1" speed="{v}" '
+            f'width="{road.ramp_width_m}"/></edges>'
+        )
+        (folder / "n.con.xml").write_text(
+            '<connections><connection from="up" to="zone" fromLane="0" toLane="1"/>'
+            '<connection from="up" to="zone" fromLane="1" toLane="2"/>'
+            '<connection from="ramp" to="zone" fromLane="0" toLane="0"/>'
+            '<connection from="zone" to="down" fromLane="1" toLane="0"/>'
+            '<connection from="zone" to="down" fromLane="2" toLane="1"/></connections>'
+        )
+        net = folder / "n.net.xml"
+        subprocess.run(
+            [
+                sumolib.checkBinary("netconvert"), "-n", str(folder / "n.nod.xml"),
+                "-e", str(folder / "n.edg.xml"), "-x", str(folder / "n.con.xml"),
+                "-o", str(net), "--no-turnarounds", "--default.lanewidth",
+                str(road.lane_width_m),
+            ],
+            check=True,
+            capture_output=True,
+        )  # fmt: skip
+        lines = ['<routes><route id="main" edges="up zone down"/>']
+        lines.append('<route id="ramp" edges="ramp zone down"/>')
+        lines.append(_vtype(cfg, "ego_t", 1.0, float(np.mean(cfg.driver.time_headway_s))))
+        lines += _mainline_routes(cfg, self.seed, self.duration_s, "main")
+        lines.append("</routes>")
+        routes = folder / "n.rou.xml"
+        routes.write_text("\n".join(lines))
+        _start(net, routes, cfg.sim.dt_s, self.seed)
+        self._traci = traci
+        self._ego: str | None = None
+        return self
+
+    def step(self) -> None:
+        traci = self._traci
+        if self._ego is not None:
+            on = traci.vehicle.getRoadID(self._ego)  # "" while waiting to depart or when gone
+            if on:
+                self._on_road = True
+            done = self._on_road and on not in ("ramp", "zone")
+        if self._ego is None or done:
+            self._ego, self._on_road = f"ego{self.egos}", False
+            self.egos += 1
+            traci.vehicle.add(self._ego, "ramp", typeID="ego_t", departSpeed="21")
+        traci.simulationStep()
+
+    def vehicle_count(self) -> int:
+        return self._traci.vehicle.getIDCount()
+
+    def __exit__(self, *exc: object) -> None:
+        self._traci.close()
+        if self._tmp is not None:
+            self._tmp.cleanup()
