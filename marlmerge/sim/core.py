@@ -170,45 +170,41 @@ class TrafficCore:
         self.sched[b, stream, idx] = rows
         self.wi[b, L.WI_COUNT_RIGHT + stream] = count + rows.shape[0]
 
-    def _last_time(self, stream: int) -> np.ndarray:
-        """[B] drawn time of the last arrival of `stream` (-inf when empty)."""
-        q_len = self.sched.shape[2]
-        count = self.wi[:, L.WI_COUNT_RIGHT + stream]
-        last = (self.wi[:, L.WI_HEAD_RIGHT + stream] + count - 1) % q_len
-        t = self.sched[np.arange(self.batch_size), stream, last, L.SC_T]
-        return np.where(count > 0, t, -np.inf)
+    def _last_time(self, b: int, stream: int) -> float:
+        """Drawn time of the last arrival of `stream` in world `b` (-inf when none is left)."""
+        count = self.wi[b, L.WI_COUNT_RIGHT + stream]
+        if count == 0:
+            return -np.inf
+        last = (self.wi[b, L.WI_HEAD_RIGHT + stream] + count - 1) % self.sched.shape[2]
+        return float(self.sched[b, stream, last, L.SC_T])
 
     def _serve(self, k: int, rows: np.ndarray | None = None) -> None:
-        """Make room and draw ahead so that a call of `k` steps never runs short."""
-        need_slots = int(self.wi[:, L.WI_N_ACTIVE].max()) + 2 * k + 2
-        if need_slots > self.n_slots:
-            self._grow_slots(max(need_slots, 2 * self.n_slots))
-        horizon = self.wf[:, L.WF_T] + (k + 1) * self.cfg.sim.dt_s  # [B]
-        for stream in range(2):
-            while True:
-                short = (self._last_time(stream) <= horizon) | (
-                    self.wi[:, L.WI_COUNT_RIGHT + stream] < 2
-                )
-                if rows is not None:
-                    short &= rows
-                if not short.any():
-                    break
-                self._reserve_ring(stream, short)
-                last = self._last_time(stream)
-                for b in np.flatnonzero(short):
-                    self._push(b, stream, self.streams.arrivals(b, stream, max(last[b], 0.0)))
-        short = self.wi[:, L.WI_COUNT_RIGHT + EGO_STREAM] < 2
-        if rows is not None:
-            short &= rows
-        if short.any():
-            self._reserve_ring(EGO_STREAM, short)
-            for b in np.flatnonzero(short):
+        """Make room and draw ahead so that a call of `k` steps, after at most one `next_ego`,
+        never runs short, in the worlds `rows` (indices; all if None)."""
+        rows = np.arange(self.batch_size) if rows is None else rows
+        if rows.size:
+            need_slots = int(self.wi[rows, L.WI_N_ACTIVE].max()) + 2 * k + 3
+            if need_slots > self.n_slots:
+                self._grow_slots(max(need_slots, 2 * self.n_slots))
+        dt = self.cfg.sim.dt_s
+        for b in rows.tolist():
+            horizon = self.wf[b, L.WF_T] + (k + 1) * dt
+            for stream in range(2):
+                while (
+                    self.wi[b, L.WI_COUNT_RIGHT + stream] < 2
+                    or self._last_time(b, stream) <= horizon
+                ):
+                    self._reserve_ring(b, stream)
+                    t_last = max(self._last_time(b, stream), 0.0)
+                    self._push(b, stream, self.streams.arrivals(b, stream, t_last))
+            while self.wi[b, L.WI_COUNT_RIGHT + EGO_STREAM] < 2:
+                self._reserve_ring(b, EGO_STREAM)
                 self._push(b, EGO_STREAM, self.streams.departures(b))
+            self.wi[b, L.WI_NEED] = 0
         self._served_k = k
 
-    def _reserve_ring(self, stream: int, rows: np.ndarray) -> None:
-        count = int(self.wi[rows, L.WI_COUNT_RIGHT + stream].max())
-        if count + CHUNK + 1 > self.sched.shape[2]:
+    def _reserve_ring(self, b: int, stream: int) -> None:
+        if self.wi[b, L.WI_COUNT_RIGHT + stream] + CHUNK + 1 > self.sched.shape[2]:
             self._grow_rings(2 * self.sched.shape[2])
 
     # ------------------------------------------------------------------ resets
@@ -284,13 +280,16 @@ class TrafficCore:
         sel = self._mask(mask)
         if not sel.any():
             return
-        self._serve(max(self._served_k, 1), sel)
+        rows = np.flatnonzero(sel)
+        short = (self.wi[rows, L.WI_COUNT_RIGHT + EGO_STREAM] < 1) | (
+            self.wi[rows, L.WI_N_ACTIVE] + 2 >= self.n_slots
+        )
+        if short.any():  # only after direct set-ups: every call leaves room for one next_ego
+            self._serve(max(self._served_k, 1), rows[short])
         kernels.next_ego(
             self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched, self.params, sel
         )
         self._check_overflow()
-        if self._served_k >= 1:
-            self._serve(self._served_k, sel)
 
     def remove_ego(self, mask: np.ndarray | None = None) -> None:
         """Take the ramp vehicle off the road in the worlds of `mask` (all if None): traffic-only
@@ -386,7 +385,7 @@ class TrafficCore:
         if status >= kernels.OVERFLOW:
             self._check_overflow()
         if status:
-            self._serve(k)
+            self._serve(k, np.flatnonzero(self.wi[:, L.WI_NEED]))
         call = self.wi[:, L.WI_CALL].T.copy()  # [5, B]: what the call did, per world
         no_agents = _NO_AGENTS[:b]
         return Rollout(

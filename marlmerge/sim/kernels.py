@@ -98,6 +98,7 @@ from marlmerge.sim.layout import (
     WI_HEAD_RIGHT,
     WI_N_ACTIVE,
     WI_N_RIGHT,
+    WI_NEED,
     WI_NEXT_ID,
     WI_OUTCOME,
     WI_OVERFLOW,
@@ -255,10 +256,21 @@ def _needs_service(
     p: np.ndarray,
     k: int,
 ) -> int:
-    """1 if world `b` needs the Python side before another call of `k` steps: too few free slots
-    (two arrivals a step, and a merged ego), drawn arrivals ending within the horizon, or no
-    drawn ego departure left."""
-    if wi[b, WI_N_ACTIVE] + 2 * k + 2 > vi.shape[2]:
+    """1 if world `b` needs the Python side before another call of `k` steps (also `WI_NEED`):
+    too few free slots (two arrivals a step, and one merged ego from a `next_ego` in between),
+    drawn arrivals ending within the horizon, or fewer than two drawn ego departures left (one
+    for a `next_ego` in between, one for the next)."""
+    need = _short(vf, vi, wf, wi, sched, b, p, k)
+    wi[b, WI_NEED] = need
+    return need
+
+
+@kernel
+def _short(
+    vf: np.ndarray, vi: np.ndarray, wf: np.ndarray, wi: np.ndarray, sched: np.ndarray, b: int,
+    p: np.ndarray, k: int,
+) -> int:
+    if wi[b, WI_N_ACTIVE] + 2 * k + 3 > vi.shape[2]:
         return 1
     q_len = sched.shape[2]
     horizon = wf[b, WF_T] + (k + 1) * p[P_DT]
@@ -267,7 +279,7 @@ def _needs_service(
         last = (wi[b, WI_HEAD_RIGHT + stream] + count - 1) % q_len
         if count == 0 or count + 1 >= q_len or sched[b, stream, last, SC_T] <= horizon:
             return 1
-    return 1 if wi[b, WI_COUNT_RIGHT + EGO_STREAM] < 1 else 0
+    return 1 if wi[b, WI_COUNT_RIGHT + EGO_STREAM] < 2 else 0
 
 
 @kernel

@@ -109,18 +109,20 @@ road as a mainline vehicle."""
     WI_QUEUE_MAX,
     WI_OVERFLOW,
     WI_VEH_STEPS,
+    WI_NEED,
     WI_STEP_OUTCOME,
     WI_EGO_PARTNER,
     WI_EGO_REAR,
     WI_SUBSTEPS,
     WI_EGO_STEPS,
-) = range(28)
-WI_ROWS = 28
+) = range(29)
+WI_ROWS = 29
 """ego_outcome (OUTCOME_*), ego_count, next_id, background_collisions, steps (simulator steps of
 this world), entered, exited (vehicles in / out since reset), lane-list lengths (right, left),
 the ego's gap-front and gap-back slots (-1 none), active vehicles, ring heads and counts of the
 three `sched` streams, entrance queues (right, left) and the longest queue since reset, an
-overflow flag (a kernel found no free slot: a bug), vehicle-steps simulated since reset; and
+overflow flag (a kernel found no free slot: a bug), vehicle-steps simulated since reset, a
+flag set by the last call when the world needs the Python side before the next (`_serve`); and
 what the last call did (`WI_CALL`): the outcome reached (0 if none), the ego's collision
 partner and whether it was the rear vehicle, simulator steps run, and how many of them the ego
 was running at (0 when it was not running at the start of the call)."""
