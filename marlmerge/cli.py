@@ -1,4 +1,4 @@
-"""Command line: `marlmerge train | cotrain | evaluate | grid | plot | simulate | validate`.
+"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | plot | simulate | validate`.
 
 `marlmerge --help` lists them."""
 
@@ -244,10 +244,14 @@ def grid_cmd(args: argparse.Namespace) -> int:
         args.worlds,
         args.out,
         progress=not args.no_progress,
+        backend=args.backend,
+        workers=args.workers,
+        address=args.address,
     )
     print(
-        f"{len(result.rows)} episodes in {result.wall_s:.0f} s "
-        f"({result.episodes_per_s:.1f} episodes/s)"
+        f"{len(result.rows)} episodes; {result.cells_run} cells run on the {result.backend} "
+        f"backend in {result.wall_s:.0f} s ({result.episodes_per_s:.1f} episodes/s), "
+        f"{result.cells_reused} cells reused from {result.out_dir}/cells"
     )
     print((result.out_dir / "summary.md").read_text())
     print(
@@ -264,6 +268,28 @@ def plot_cmd(args: argparse.Namespace) -> int:
     for p in plot_run(args.run):
         print(f"wrote {p}")
     return 0
+
+
+def sweep_cmd(args: argparse.Namespace) -> int:
+    """Train a preset over many seeds on a backend and summarise across seeds."""
+    from marlmerge.sweep import parse_seeds, sweep
+
+    seeds = parse_seeds(args.seeds)
+    out = Path(args.out or f"runs/sweep_{Path(args.preset).stem}")
+    summary = sweep(
+        args.preset,
+        seeds,
+        out,
+        _parse_sets(args.set),
+        args.kind,
+        args.backend,
+        args.workers,
+        args.address,
+        progress=not args.no_progress,
+    )
+    print((out / "summary.md").read_text())
+    print(f"{len(seeds)} seeds on the {args.backend} backend; runs in {out}/seed_*")
+    return 0 if summary else 1
 
 
 def validate_cmd(args: argparse.Namespace) -> int:
@@ -285,6 +311,23 @@ def validate_cmd(args: argparse.Namespace) -> int:
         print(f"flow {flow} veh/h/lane, marlmerge / SUMO: {ratios}")
     print(f"all targets met: {result['all_targets_met']}; wrote {args.out}/README.md")
     return 0 if result["all_targets_met"] else 1
+
+
+def _backend_args(p: argparse.ArgumentParser) -> None:
+    from marlmerge.backends import BACKENDS
+
+    p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="process",
+        help="serial, process (default: worker processes on every core) or ray",
+    )
+    p.add_argument("--workers", type=int, default=None, help="processes / local Ray CPUs")
+    p.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join (e.g. auto after `ray start --head`); default: a local one",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -359,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
     g.add_argument("--out", default="runs/grid")
     g.add_argument("--no-progress", action="store_true")
+    _backend_args(g)
     g.set_defaults(func=grid_cmd)
 
     pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
@@ -378,6 +422,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--out", default="runs/simulate", help="output folder")
     s.set_defaults(func=simulate)
+
+    w = sub.add_parser("sweep", help="train a preset over many seeds, summarise across seeds")
+    w.add_argument("preset", help="training preset in trainers/ (or a .toml path)")
+    w.add_argument("--seeds", default="0-4", help="e.g. 0-9, 0,2,5 or 0-3,10-12 (default 0-4)")
+    w.add_argument(
+        "--kind", choices=("train", "cotrain"), default="train", help="the preset's schema"
+    )
+    w.add_argument("--out", default=None, help="sweep folder (default runs/sweep_<preset>)")
+    w.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field"
+    )
+    w.add_argument("--no-progress", action="store_true")
+    _backend_args(w)
+    w.set_defaults(func=sweep_cmd)
 
     v = sub.add_parser("validate", help="compare the simulator with SUMO, write docs/validation")
     v.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")

@@ -8,7 +8,7 @@ policy evaluated with them; `worlds` only sets how many run at once.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -18,6 +18,7 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
 from marlmerge.metrics import EpisodeTrajectory, TrajectoryRecorder
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.sim.streams import WorldSeed
 
 EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
 """observation [B, 7] -> acceleration [B, 1] (m/s^2)."""
@@ -34,6 +35,7 @@ def rollout_first_egos(
     worlds: int = 50,
     record: bool = False,
     highway_policy: HighwayPolicy | None = None,
+    road_seeds: Sequence[WorldSeed] | None = None,
 ) -> tuple[dict[str, np.ndarray], list[dict[str, np.ndarray]]]:
     """Run the first ego of `episodes` fresh worlds to its end.
 
@@ -41,7 +43,8 @@ def rollout_first_egos(
     between mainline vehicles during the episode) and, with `record`, each episode's
     `EpisodeTrajectory` (simulator-step samples up to its end). With `highway_policy`, the K
     highway agents of every world (`MultiAgentMergeEnv`) are driven by it instead of their
-    scripted profiles; the roads are the same either way.
+    scripted profiles; the roads are the same either way. `road_seeds` (one per episode)
+    replace the seeds `seed + e`.
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
@@ -54,7 +57,11 @@ def rollout_first_egos(
     lo, hi = scenario.ego.accel_bounds_mps2
     for g in range(-(-episodes // worlds)):
         nw = min(worlds, episodes - g * worlds)
-        seeds = [seed + g * worlds + i for i in range(nw)]
+        seeds = (
+            [seed + g * worlds + i for i in range(nw)]
+            if road_seeds is None
+            else list(road_seeds[g * worlds : g * worlds + nw])
+        )
         if highway_policy is None:
             env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seeds)
         else:

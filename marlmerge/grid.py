@@ -4,10 +4,17 @@
         --episodes 30 --out runs/grid
 
 Conditions are scenario presets (default: every `envs/grid_*.toml`: three flows x four driver
-mixes). In each condition every policy meets the same episodes: the first ramp vehicle of
-`episodes` freshly seeded worlds (seed `seed + 1000 * condition index`, in groups of `worlds`
-run in parallel). A learned policy is evaluated once per training run (one run folder per training
-seed) and its episodes are pooled.
+mixes). In each condition every policy meets the same episodes: episode e is the first ramp
+vehicle of a fresh world seeded `SeedSequence(seed, spawn_key=(crc32(preset name), e))`, so the
+roads of a condition depend only on the root seed and the preset (not on the other conditions,
+the policies, the batching or the backend). A learned policy is evaluated once per training run
+(one run folder per training seed) and its episodes are pooled.
+
+The work is split into cells, one per (condition, policy, training run, learned highway policy),
+run on a backend (`marlmerge.backends`: serial, processes, Ray). Each cell's rows are written
+atomically to `cells/` as soon as it finishes; a grid that is run again with the same arguments
+skips the cells it already has, so an interrupted grid resumes. The outputs are the same, byte for
+byte, whatever the backend and however often it was interrupted.
 
 Outputs in `out`: `episodes.csv` (one row per episode, every metric of `marlmerge.metrics`),
 `summary.md` (success / collision with 95 % intervals, comfort and safety tables) and heat maps
@@ -18,7 +25,11 @@ from __future__ import annotations
 
 import csv
 import glob
+import hashlib
+import io
+import os
 import time
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from marlmerge.backends import check_backend, run_tasks
 from marlmerge.config import ScenarioConfig
 from marlmerge.env import find_preset, resolve_config
 from marlmerge.evaluate import EgoPolicy, rollout_first_egos
@@ -157,6 +169,66 @@ class GridResult:
     episodes_per_s: float
     wall_s: float
     out_dir: Path
+    backend: str = "serial"
+    cells_run: int = 0
+    cells_reused: int = 0
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One unit of grid work: a policy (one training run of it) on one condition (one learned
+    highway policy of it, or scripted traffic), over the condition's episodes."""
+
+    policy: PolicySpec
+    run: str | None
+    condition: Condition
+    highway: str | None
+    episodes: int
+    seed: int
+    worlds: int
+
+    @property
+    def key(self) -> str:
+        """A name for the cell's result file, fixed by everything the result depends on."""
+        text = repr((self.policy, self.run, self.condition, self.highway, self.episodes, self.seed))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def road_seeds(seed: int, preset_name: str, episodes: int) -> list[np.random.SeedSequence]:
+    """The seeds of a condition's episodes: keyed by the root seed, the preset and the episode."""
+    key = zlib.crc32(preset_name.encode())
+    return [np.random.SeedSequence(seed, spawn_key=(key, e)) for e in range(episodes)]
+
+
+def run_cell(cell: Cell) -> list[dict]:
+    """The rows of one cell (runs anywhere: a pure function of the cell)."""
+    from marlmerge.cotrain import load_highway_policy
+
+    scen = resolve_config(cell.condition.preset)
+    policy = make_policy(cell.policy, cell.run, scen)
+    rec, traces = rollout_first_egos(
+        policy,
+        scen,
+        cell.episodes,
+        cell.seed,
+        cell.worlds,
+        record=True,
+        highway_policy=None if cell.highway is None else load_highway_policy(cell.highway),
+        road_seeds=road_seeds(cell.seed, scen.name, cell.episodes),
+    )
+    return [
+        {
+            "policy": cell.policy.name,
+            "run": cell.run or "-",
+            "condition": cell.condition.label,
+            "highway": cell.highway or "scripted",
+            "flow_vph_per_lane": scen.traffic.flow_vph_per_lane,
+            "episode": i,
+            **episode_metrics(traj),
+            "background_collisions": int(rec["background_collisions"][i]),
+        }
+        for i, traj in enumerate(traces)
+    ]
 
 
 def run_grid(
@@ -167,61 +239,63 @@ def run_grid(
     worlds: int = 50,
     out_dir: str | Path = "runs/grid",
     progress: bool = True,
+    backend: str = "serial",
+    workers: int | None = None,
+    address: str | None = None,
 ) -> GridResult:
-    """Evaluate every policy on every condition; write the CSV, the summary and the heat maps."""
-    from marlmerge.cotrain import load_highway_policy
-
+    """Evaluate every policy on every condition on `backend`; write the CSV, the summary and the
+    heat maps. Cells already in `out_dir/cells` (same arguments) are reused."""
+    check_backend(backend, workers)
+    if episodes < 1 or worlds < 1:
+        raise ValueError(f"episodes and worlds must be >= 1, got {episodes} and {worlds}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    (out / "cells").mkdir(parents=True, exist_ok=True)
     conds = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
-    scenarios = [resolve_config(c.preset) for c in conds]
-    presets = list(dict.fromkeys(s.name for s in scenarios))  # one list of roads per preset
-    jobs = [
-        (ci, p, run, hw)
-        for ci in range(len(conds))
+    cells = [
+        Cell(p, run, c, hw, episodes, seed, worlds)
+        for c in conds
         for p in policies
         for run in (p.runs or (None,))
-        for hw in (conds[ci].highway or (None,))
+        for hw in (c.highway or (None,))
     ]
+    files = [out / "cells" / f"{cell.key}.csv" for cell in cells]
+    todo = [i for i, f in enumerate(files) if not f.exists()]
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(jobs) * episodes, unit="ep", desc="grid", dynamic_ncols=True)
-    rows: list[dict] = []
-    t0 = time.perf_counter()
-    for ci, spec, run, hw in jobs:
-        scen = scenarios[ci]
-        policy = make_policy(spec, run, scen)
-        rec, traces = rollout_first_egos(
-            policy,
-            scen,
-            episodes,
-            seed + 1000 * presets.index(scen.name),
-            worlds,
-            record=True,
-            highway_policy=None if hw is None else load_highway_policy(hw),
+        bar = tqdm(
+            total=len(cells) * episodes,
+            initial=(len(cells) - len(todo)) * episodes,
+            unit="ep",
+            desc=f"grid ({backend})",
+            dynamic_ncols=True,
         )
-        for i, traj in enumerate(traces):
-            rows.append(
-                {
-                    "policy": spec.name,
-                    "run": run or "-",
-                    "condition": conds[ci].label,
-                    "highway": hw or "scripted",
-                    "flow_vph_per_lane": scen.traffic.flow_vph_per_lane,
-                    "episode": i,
-                    **episode_metrics(traj),
-                    "background_collisions": int(rec["background_collisions"][i]),
-                }
-            )
+
+    def done(j: int, rows: list[dict]) -> None:
+        _write_atomically(files[todo[j]], _csv_text(rows))
         if bar is not None:
-            bar.update(episodes)
+            bar.update(len(rows))
+
+    t0 = time.perf_counter()
+    run_tasks(run_cell, [cells[i] for i in todo], backend, done, workers, address)
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
-    result = GridResult(rows, len(rows) / max(wall, 1e-9), wall, out)
-    write_csv(rows, out / "episodes.csv")
+    texts = [f.read_text() for f in files]
+    _write_atomically(
+        out / "episodes.csv", texts[0] + "".join(t.split("\n", 1)[1] for t in texts[1:])
+    )
+    rows = list(csv.DictReader(io.StringIO((out / "episodes.csv").read_text())))
+    result = GridResult(
+        rows,
+        len(todo) * episodes / max(wall, 1e-9),
+        wall,
+        out,
+        backend,
+        len(todo),
+        len(cells) - len(todo),
+    )
     labels = list(dict.fromkeys(c.label for c in conds))
     names = list(dict.fromkeys(p.name for p in policies))
     (out / "summary.md").write_text(summary_markdown(rows, names, labels, result, episodes, seed))
@@ -229,11 +303,19 @@ def run_grid(
     return result
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
-    with path.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+def _csv_text(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    """A reader (or a resumed grid) sees the whole file or none of it."""
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def _cell(rows: list[dict], policy: str, cond: str, metric: str) -> np.ndarray:
@@ -274,10 +356,12 @@ def summary_markdown(
     out = [
         "# Robustness grid",
         "",
-        f"{episodes} episodes per condition (seeds from {seed}), the same for every policy; "
+        f"{episodes} episodes per condition (root seed {seed}), the same for every policy; "
         "learned policies pooled over their training runs "
         f"({', '.join(f'{p}: {n}' for p, n in n_runs.items())}). "
-        f"{len(rows)} episodes in {result.wall_s:.0f} s ({result.episodes_per_s:.1f} episodes/s).",
+        f"{len(rows)} episodes; {result.cells_run} of {len(result.rows) // max(episodes, 1)} "
+        f"cells run here on the {result.backend} backend in {result.wall_s:.0f} s "
+        f"({result.episodes_per_s:.1f} episodes/s).",
         "Rates in % with 95 % Wilson intervals; means with 95 % half-widths.",
         "",
         "## Success % / collision %",

@@ -52,6 +52,18 @@ from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 GROUP = "highway"
 
 
+def _opponent_seed(seed: int | Sequence[Any]) -> np.random.SeedSequence:
+    """The seed of the opponent draws: the env's int seed, or one number from each world's."""
+    if isinstance(seed, int | np.integer):
+        return np.random.SeedSequence(int(seed))
+    return np.random.SeedSequence(
+        [
+            int(s.generate_state(1)[0]) if isinstance(s, np.random.SeedSequence) else int(s)
+            for s in seed
+        ]
+    )
+
+
 class MultiAgentMergeEnv(BatchedMergeEnv):
     """`BatchedMergeEnv` plus the `"highway"` agent group (see the module docstring)."""
 
@@ -117,7 +129,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         self.opponent = np.full(b, -1, dtype=np.int64)  # [B] -1 scripted
         self.n_opponents = 1
         self.scripted_fraction = 0.0
-        self.opponent_rng = np.random.default_rng(np.random.SeedSequence(seed))
+        self.opponent_rng = np.random.default_rng(_opponent_seed(seed))
 
     def sim_state(self) -> dict[str, Any]:
         state = super().sim_state()
@@ -150,7 +162,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
     # ------------------------------------------------------------------ torchrl hooks
     def _set_seed(self, seed: int | None) -> None:
         super()._set_seed(seed)
-        self.opponent_rng = np.random.default_rng(np.random.SeedSequence(seed))
+        self.opponent_rng = np.random.default_rng(_opponent_seed(seed))
         self._new_rosters(np.ones(self.num_worlds, dtype=bool))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:

@@ -46,6 +46,13 @@ def test_state_dict_refuses_another_scenario_or_batch():
         TrafficCore(CFG, batch_size=3).load_state_dict(saved)
 
 
+def test_a_corrupt_state_is_refused():
+    saved = TrafficCore(CFG, batch_size=2, seed=0).state_dict()
+    saved["arrays"]["lanes"][1, 0, :2] = saved["arrays"]["lanes"][1, 0, 1::-1]
+    with pytest.raises(ValueError, match="world 1"):
+        TrafficCore(CFG, batch_size=2).load_state_dict(saved)
+
+
 def test_state_views_are_read_only():
     core = TrafficCore(CFG, batch_size=1, seed=0)
     with pytest.raises(ValueError, match="read-only"):

@@ -574,6 +574,20 @@ class TrafficCore:
             for g, s in zip(gens, states, strict=True):
                 g.bit_generator.state = s
         self._served_k = int(saved["served_k"])
+        self._check_lanes()
+
+    def _check_lanes(self) -> None:
+        """The lane lists hold exactly the vehicles of each lane, downstream first."""
+        for b in range(self.batch_size):
+            for lane in (L.RIGHT, L.LEFT):
+                n = int(self.wi[b, L.WI_N_RIGHT + lane])
+                slots = self.lanes[b, lane, :n]
+                want = np.flatnonzero(
+                    (self.vi[b, L.VI_ACTIVE] == 1) & (self.vi[b, L.VI_LANE] == lane)
+                )
+                x = self.vf[b, L.VF_X, slots]
+                if sorted(slots.tolist()) != want.tolist() or np.any(np.diff(x) > 0):
+                    raise ValueError(f"core state: lane lists of world {b} are inconsistent")
 
     @property
     def egos_running(self) -> np.ndarray:

@@ -267,8 +267,14 @@ def _needs_service(
 
 @kernel
 def _short(
-    vf: np.ndarray, vi: np.ndarray, wf: np.ndarray, wi: np.ndarray, sched: np.ndarray, b: int,
-    p: np.ndarray, k: int,
+    vf: np.ndarray,
+    vi: np.ndarray,
+    wf: np.ndarray,
+    wi: np.ndarray,
+    sched: np.ndarray,
+    b: int,
+    p: np.ndarray,
+    k: int,
 ) -> int:
     if wi[b, WI_N_ACTIVE] + 2 * k + 3 > vi.shape[2]:
         return 1

@@ -9,7 +9,8 @@ repeat, or when the chunks happen to be drawn.
 
 Seeds: `seed=s` for a batch of B worlds gives world i the sequence `SeedSequence(s,
 spawn_key=(i,))`; an explicit per-world seed s_i gives `SeedSequence(s_i, spawn_key=(0,))`, the
-same world as world 0 of a core seeded s_i (so B single worlds can reproduce one batch).
+same world as world 0 of a core seeded s_i (so B single worlds can reproduce one batch); a
+per-world `SeedSequence` is used as it is (the grid keys its roads that way).
 """
 
 from __future__ import annotations
@@ -40,8 +41,11 @@ FILL_STREAM = 3
 N_STREAMS = 4
 
 
+WorldSeed = int | np.random.SeedSequence
+
+
 def world_seed_sequences(
-    batch_size: int, seed: int | Sequence[int] | None, rows: np.ndarray
+    batch_size: int, seed: int | Sequence[WorldSeed] | None, rows: np.ndarray
 ) -> list[np.random.SeedSequence]:
     """The seed sequence of each world in `rows` (see the module docstring)."""
     if seed is None:
@@ -51,10 +55,19 @@ def world_seed_sequences(
     seeds = list(seed)
     if len(seeds) != batch_size:
         raise ValueError(f"seed: need one seed per world ({batch_size}), got {len(seeds)}")
-    bad = [s for s in seeds if not isinstance(s, int | np.integer) or isinstance(s, bool)]
+    bad = [
+        s
+        for s in seeds
+        if not isinstance(s, int | np.integer | np.random.SeedSequence) or isinstance(s, bool)
+    ]
     if bad:
-        raise ValueError(f"seed: per-world seeds must be integers, got {bad[0]!r}")
-    return [np.random.SeedSequence(int(seeds[i]), spawn_key=(0,)) for i in rows]
+        raise ValueError(f"seed: per-world seeds must be integers or SeedSequences, got {bad[0]!r}")
+    return [
+        seeds[i]
+        if isinstance(seeds[i], np.random.SeedSequence)
+        else np.random.SeedSequence(int(seeds[i]), spawn_key=(0,))
+        for i in rows
+    ]
 
 
 class Streams:
@@ -66,7 +79,10 @@ class Streams:
 
     def seed(self, rows: np.ndarray, sequences: list[np.random.SeedSequence]) -> None:
         for b, seq in zip(rows, sequences, strict=True):
-            self.gens[b] = [np.random.default_rng(c) for c in seq.spawn(N_STREAMS)]
+            # spawn from a copy: spawning advances a SeedSequence, and equal seeds must give equal
+            # worlds every time
+            fresh = np.random.SeedSequence(seq.entropy, spawn_key=seq.spawn_key)
+            self.gens[b] = [np.random.default_rng(c) for c in fresh.spawn(N_STREAMS)]
 
     # ------------------------------------------------------------------ drawn vehicles
     def _drivers(self, g: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
