@@ -41,7 +41,7 @@ import numpy as np
 
 import marlmerge
 from marlmerge.config import ScenarioConfig
-from marlmerge.env import EGO_AGENT
+from marlmerge.pettingzoo_env import EGO_AGENT
 from marlmerge.sim import OUTCOME_NONE, TrafficCore
 
 Measure = Callable[[float], dict[str, float]]

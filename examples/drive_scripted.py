@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 import marlmerge
-from marlmerge.env import EGO_AGENT, reward_terms
+from marlmerge.pettingzoo_env import EGO_AGENT, reward_terms
 from marlmerge.render import save_png
 from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.spec.observation import SPEED_SCALE_MPS

@@ -1,4 +1,5 @@
-"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | plot | simulate | validate`.
+"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | plot | simulate | render |
+validate`.
 
 `marlmerge --help` lists them."""
 
@@ -30,7 +31,7 @@ def _ego_rule(rule: str, cfg, rng: np.random.Generator):
 
 def simulate(args: argparse.Namespace) -> int:
     """Drive ramp vehicles through scripted traffic, print what happened, save a frame."""
-    from marlmerge.env import EGO_AGENT, parallel_env, reward_terms
+    from marlmerge.pettingzoo_env import EGO_AGENT, parallel_env, reward_terms
     from marlmerge.render import render_frame, save_png
     from marlmerge.sim import EGO, OUTCOME_NAMES, OUTCOME_NONE
 
@@ -213,9 +214,9 @@ def _print_evaluation(ev: dict) -> None:
 
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
-    from marlmerge.env import resolve_config
     from marlmerge.evaluate import evaluate_policy
     from marlmerge.learners.baselines_rl import load_policy, load_scenario_of
+    from marlmerge.pettingzoo_env import resolve_config
 
     policy = load_policy(args.policy)
     scen = resolve_config(args.scenario) if args.scenario else load_scenario_of(args.policy)
@@ -292,9 +293,22 @@ def sweep_cmd(args: argparse.Namespace) -> int:
     return 0 if summary else 1
 
 
+def render_cmd(args: argparse.Namespace) -> int:
+    """Record greedy episodes of a policy as a video at the simulation rate."""
+    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.video import render_episodes
+
+    cfg = resolve_config(args.scenario)
+    path, n, outcomes = render_episodes(
+        args.policy, cfg, args.out, args.episodes, args.seed, args.view, args.highway
+    )
+    print(f"wrote {path}: {n} frames at {1.0 / cfg.sim.dt_s:g} fps; outcomes {', '.join(outcomes)}")
+    return 0
+
+
 def validate_cmd(args: argparse.Namespace) -> int:
     """Run the validation scenarios in marlmerge and SUMO and write the report."""
-    from marlmerge.env import resolve_config
+    from marlmerge.pettingzoo_env import resolve_config
     from marlmerge.validation import sumo
     from marlmerge.validation.report import validate
 
@@ -436,6 +450,16 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--no-progress", action="store_true")
     _backend_args(w)
     w.set_defaults(func=sweep_cmd)
+
+    r = sub.add_parser("render", help="record greedy episodes as a video (.mp4 or .gif)")
+    r.add_argument("policy", help="hold, idm, gap, or a run folder / policy.pt")
+    r.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
+    r.add_argument("--episodes", type=int, default=1)
+    r.add_argument("--seed", type=int, default=1_000_000, help="first road seed (held-out)")
+    r.add_argument("--view", choices=("merge", "follow"), default="merge")
+    r.add_argument("--highway", default=None, help="a saved highway policy driving the agents")
+    r.add_argument("--out", default="runs/episode.mp4", help="video file (.mp4 or .gif)")
+    r.set_defaults(func=render_cmd)
 
     v = sub.add_parser("validate", help="compare the simulator with SUMO, write docs/validation")
     v.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")

@@ -39,9 +39,9 @@ import torch
 
 from marlmerge.backends import check_backend, run_tasks
 from marlmerge.config import ScenarioConfig
-from marlmerge.env import find_preset, resolve_config
 from marlmerge.evaluate import EgoPolicy, rollout_first_egos
 from marlmerge.metrics import aggregate, episode_metrics
+from marlmerge.pettingzoo_env import find_preset, resolve_config
 
 RULE_POLICIES = ("hold", "idm", "gap")
 LEARNED_KINDS = ("quadq", "dqn", "td3")

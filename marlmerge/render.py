@@ -61,12 +61,13 @@ PROFILE_COLOURS: dict[int, Colour] = {
     int(Profile.COOPERATIVE): (50, 185, 70),
     int(Profile.ADVERSARIAL): (245, 140, 25),
 }
-AGENT_OUTLINE: Colour = (0, 235, 255)
-"""Outline of the highway agents (their fill keeps the profile colour)."""
+AGENT_MARKER: Colour = (0, 235, 255)
+"""Dot on the highway agents (their fill keeps the profile colour)."""
 COLLIDED_COLOUR: Colour = (25, 25, 25)
 COLLIDED_OUTLINE: Colour = (255, 0, 255)
-GAP_MARKER: Colour = (255, 235, 0)
-"""Dot on the ego's gap-front and gap-back vehicles."""
+GAP_FRONT_OUTLINE: Colour = (255, 225, 0)
+GAP_BACK_OUTLINE: Colour = (185, 95, 255)
+"""Outlines of the ego's gap-front and gap-back vehicles."""
 
 
 def ego_lateral_m(road: RoadConfig, x_m: np.ndarray | float) -> np.ndarray:
@@ -94,12 +95,11 @@ class _View:
         self.ppm = float(px_per_m)
         lw = road.lane_width_m
         self.y_top = 1.5 * lw + LATERAL_MARGIN_M
-        x_low = max(self.x0, road.x_ramp_start_m - RAMP_STUB_M)  # most lateral drawn ramp point
-        y_low = -0.5 * lw
-        if x_low < 0.0:
-            y_low = min(y_low, float(ego_lateral_m(road, x_low)) - 0.5 * road.ramp_width_m)
+        # the same height whatever the window shows: down to the most lateral drawn ramp point
+        x_low = road.x_ramp_start_m - RAMP_STUB_M
+        y_low = min(-0.5 * lw, float(ego_lateral_m(road, x_low)) - 0.5 * road.ramp_width_m)
         self.y_bottom = y_low - LATERAL_MARGIN_M
-        self.width = int(math.ceil((self.x1 - self.x0) * self.ppm))
+        self.width = int(math.ceil((self.x1 - self.x0) * self.ppm - 1e-6))
         self.height = int(math.ceil((self.y_top - self.y_bottom) * self.ppm))
 
     def col(self, x: np.ndarray | float) -> np.ndarray | float:
@@ -237,9 +237,10 @@ def render_frame(
 
     W = ceil((x_range_m[1] - x_range_m[0]) * px_per_m) (1440 by default); H covers the two lanes,
     the ramp and margins (about 105 px by default). `agent_slots` maps highway agent names to slots;
-    those vehicles get a cyan outline. Ego red; background vehicles by profile (cooperative green,
-    neutral blue-grey, adversarial orange); collided vehicles dark with a magenta outline; the ego's
-    gap-front and gap-back vehicles carry a yellow dot. Vehicles outside the window are clipped.
+    those vehicles carry a cyan dot. Ego red; mainline vehicles filled by profile (cooperative
+    green, neutral blue-grey, adversarial orange); the ego's gap-front vehicle outlined yellow,
+    its gap-back vehicle violet; collided vehicles dark with a magenta outline. Vehicles outside
+    the window are clipped. `render_scene` adds the heads-up line and the legend.
     """
     cfg = core.cfg
     road = cfg.road
@@ -261,22 +262,21 @@ def render_frame(
     visible[EGO] = False
     agents = set((agent_slots or {}).values())
     gaps = core.ego_gaps()
-    gap_slots = {int(gaps.front[world]), int(gaps.back[world])} - {-1}
+    roles = {int(gaps.front[world]): GAP_FRONT_OUTLINE, int(gaps.back[world]): GAP_BACK_OUTLINE}
     rows_c = v.row(np.clip(st.lane[world], 0, 1) * lw)  # lane-centre rows of mainline vehicles
     hw_px = half_w * ppm
     for s in np.flatnonzero(visible).tolist():
         a, b, rc = float(c_lo[s]), float(c_hi[s]), float(rows_c[s])
+        fill = PROFILE_COLOURS.get(int(st.profile[world, s]), PROFILE_COLOURS[0])
+        outline = roles.get(s)
         if st.collided[world, s]:
             fill, outline = COLLIDED_COLOUR, COLLIDED_OUTLINE
-        else:
-            fill = PROFILE_COLOURS.get(int(st.profile[world, s]), PROFILE_COLOURS[0])
-            outline = AGENT_OUTLINE if s in agents else None
         if outline is not None:
-            _rect(img, a, b, rc - hw_px, rc + hw_px, outline, grow_px=1)
+            _rect(img, a, b, rc - hw_px, rc + hw_px, outline, grow_px=max(1, round(ppm / 4)))
         _rect(img, a, b, rc - hw_px, rc + hw_px, fill)
-        if s in gap_slots:
-            cm = 0.5 * (a + b)
-            _rect(img, cm - 1.5, cm + 1.5, rc - 1.5, rc + 1.5, GAP_MARKER)
+        if s in agents:
+            cm, dot = 0.5 * (a + b), max(1.5, 0.4 * ppm)
+            _rect(img, cm - dot, cm + dot, rc - dot, rc + dot, AGENT_MARKER)
 
     if active[EGO] and c_hi[EGO] > 0.0 and c_lo[EGO] < w:
         # on its drawn path, at the lateral position of the body's midpoint
@@ -290,6 +290,151 @@ def render_frame(
         _rect(img, a, b, rc - hw_px, rc + hw_px, outline, grow_px=1)
         _rect(img, a, b, rc - hw_px, rc + hw_px, fill)
     return img
+
+
+VIEWS = ("merge", "follow")
+"""`merge`: the ramp start to past the success line at 4 px/m; `follow`: 120 m around the ego at
+8 px/m."""
+FOLLOW_BEHIND_M, FOLLOW_AHEAD_M, FOLLOW_PX_PER_M = 60.0, 60.0, 8.0
+HUD_BG: Colour = (20, 22, 28)
+HUD_TEXT: Colour = (235, 235, 235)
+LEGEND = (
+    ("ego", EGO_COLOUR, None),
+    ("gap-front", PROFILE_COLOURS[0], GAP_FRONT_OUTLINE),
+    ("gap-back", PROFILE_COLOURS[0], GAP_BACK_OUTLINE),
+    ("cooperative", PROFILE_COLOURS[int(Profile.COOPERATIVE)], None),
+    ("neutral", PROFILE_COLOURS[int(Profile.NEUTRAL)], None),
+    ("adversarial", PROFILE_COLOURS[int(Profile.ADVERSARIAL)], None),
+    ("highway agent", PROFILE_COLOURS[0], AGENT_MARKER),
+    ("collided", COLLIDED_COLOUR, COLLIDED_OUTLINE),
+)
+
+
+def view_range(core: TrafficCore, world: int, view: str) -> tuple[tuple[float, float], float]:
+    """(x range in m, px per m) of a named view."""
+    if view == "merge":
+        return default_x_range(core), 4.0
+    if view == "follow":
+        x = float(core.state.x_m[world, EGO])
+        return (x - FOLLOW_BEHIND_M, x + FOLLOW_AHEAD_M), FOLLOW_PX_PER_M
+    raise ValueError(f"view must be one of {VIEWS}, got {view!r}")
+
+
+def hud_text(core: TrafficCore, world: int = 0) -> str:
+    """The heads-up line: time, the ego's speed and acceleration, its gaps, the outcome."""
+    from marlmerge.sim import OUTCOME_NAMES
+
+    st, g = core.state, core.ego_gaps()
+    front = f"{g.d_front_m[world]:5.1f} m" if g.front[world] >= 0 else "  none"
+    back = f"{g.d_back_m[world]:5.1f} m" if g.back[world] >= 0 else "  none"
+    return (
+        f"t {st.ego_time_s[world]:5.1f} s   ego {st.v_mps[world, EGO]:4.1f} m/s "
+        f"{st.a_mps2[world, EGO]:+5.2f} m/s2   gap front {front}  back {back}   "
+        f"x {st.x_m[world, EGO]:+6.1f} m   {OUTCOME_NAMES[int(st.ego_outcome[world])]}"
+    )
+
+
+@lru_cache(maxsize=4)
+def _font(size: int):  # noqa: ANN202 - a PIL font
+    from PIL import ImageFont
+
+    return ImageFont.load_default(size=size)
+
+
+def render_scene(
+    core: TrafficCore,
+    world: int = 0,
+    agent_slots: dict[str, int] | None = None,
+    view: str = "merge",
+    caption: str = "",
+) -> np.ndarray:
+    """A frame people can read: the heads-up line (`hud_text`, and `caption`) above the road
+    (`render_frame` in the `view`), the legend below. [H, W, 3] uint8."""
+    from PIL import Image, ImageDraw
+
+    x_range, ppm = view_range(core, world, view)
+    road = render_frame(core, world, agent_slots, x_range, ppm)
+    w = road.shape[1]
+    font = _font(14)
+    hud_h, legend_h = 26, 24
+    img = Image.new("RGB", (w, hud_h + road.shape[0] + legend_h), HUD_BG)
+    img.paste(Image.fromarray(road), (0, hud_h))
+    draw = ImageDraw.Draw(img)
+    text = hud_text(core, world) + (f"   {caption}" if caption else "")
+    draw.text((8, 5), text, fill=HUD_TEXT, font=font)
+    x, y = 8, hud_h + road.shape[0] + 5
+    for label, fill, outline in LEGEND:
+        if outline is not None and label != "highway agent":
+            draw.rectangle((x - 2, y - 2, x + 24, y + 13), fill=outline)
+        draw.rectangle((x, y, x + 22, y + 11), fill=fill)
+        if label == "highway agent":
+            draw.rectangle((x + 8, y + 3, x + 14, y + 8), fill=outline)
+        draw.text((x + 28, y - 2), label, fill=HUD_TEXT, font=font)
+        x += 34 + int(draw.textlength(label, font=font)) + 14
+        if x > w - 60:
+            break
+    return np.asarray(img, dtype=np.uint8).copy()
+
+
+class Window:
+    """A window that shows frames at a fixed rate (pygame, the `[video]` extra)."""
+
+    def __init__(self, title: str, fps: float):
+        try:
+            import pygame
+        except ImportError:
+            raise ImportError(
+                'render_mode="human" needs pygame: pip install -c constraints.txt ".[video]"'
+            ) from None
+        self._pg = pygame
+        pygame.init()
+        pygame.display.set_caption(title)
+        self._screen = None
+        self._clock = pygame.time.Clock()
+        self.fps = fps
+
+    def show(self, frame: np.ndarray) -> None:
+        pg = self._pg
+        h, w = frame.shape[:2]
+        if self._screen is None or self._screen.get_size() != (w, h):
+            self._screen = pg.display.set_mode((w, h))
+        pg.event.pump()
+        self._screen.blit(
+            pg.surfarray.make_surface(np.ascontiguousarray(frame.swapaxes(0, 1))), (0, 0)
+        )
+        pg.display.flip()
+        self._clock.tick(self.fps)
+
+    def close(self) -> None:
+        self._pg.display.quit()
+        self._pg.quit()
+
+
+def write_video(path: str | Path, frames: list[np.ndarray], fps: float) -> Path:
+    """Frames [H, W, 3] uint8 to `.mp4` (H.264, imageio-ffmpeg) or `.gif` (imageio)."""
+    path = Path(path)
+    if path.suffix.lower() not in (".mp4", ".gif"):
+        raise ValueError(f"video path must end in .mp4 or .gif, got {str(path)!r}")
+    if not frames:
+        raise ValueError("no frames to write")
+    try:
+        import imageio.v2 as imageio
+    except ImportError:
+        raise ImportError(
+            'videos need imageio: pip install -c constraints.txt ".[video]"'
+        ) from None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".gif":
+        imageio.mimsave(path, frames, duration=1000.0 / fps, loop=0)
+        return path
+    h, w = frames[0].shape[:2]
+    ph, pw = -h % 16, -w % 16  # H.264 wants sizes in multiples of 16: pad with the HUD colour
+    with imageio.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=16) as out:
+        for f in frames:
+            if ph or pw:
+                f = np.pad(f, ((0, ph), (0, pw), (0, 0)), constant_values=0)
+            out.append_data(f)
+    return path
 
 
 def save_png(path: str | Path, image: np.ndarray) -> None:

@@ -54,8 +54,8 @@ def test_every_policy_meets_the_same_episodes():
     import numpy as np
     import torch
 
-    from marlmerge.env import resolve_config
     from marlmerge.evaluate import rollout_first_egos
+    from marlmerge.pettingzoo_env import resolve_config
 
     scen = resolve_config(CONDITIONS[0])
 

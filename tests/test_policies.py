@@ -3,7 +3,7 @@
 import numpy as np
 
 import marlmerge
-from marlmerge.env import EGO_AGENT
+from marlmerge.pettingzoo_env import EGO_AGENT
 from marlmerge.policies import IdmEgoPolicy, ScriptedHighwayPolicy
 from marlmerge.spec.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE
 

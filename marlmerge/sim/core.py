@@ -312,12 +312,14 @@ class TrafficCore:
         k: int | None = None,
         roster: Roster | None = None,
         roster_accel: np.ndarray | None = None,
+        worlds: np.ndarray | None = None,
     ) -> Rollout:
         """Hold `ego_accel` ([B] m/s^2, clipped to the ego bounds; NaN: the ego drives by plain
         IDM and ignores the merge) for `k` simulator steps (default `sim.action_repeat`) in every
-        world. `roster` names highway agents whose terms and observations are computed, and
-        `roster_accel` [B, K] (NaN: scripted) drives them. A world whose ego was running stops at
-        the step its episode ends."""
+        world (or in the worlds of the mask `worlds` [B]; the others stand still and only report
+        their observations). `roster` names highway agents whose terms and observations are
+        computed, and `roster_accel` [B, K] (NaN: scripted) drives them. A world whose ego was
+        running stops at the step its episode ends."""
         k = self.cfg.sim.action_repeat if k is None else int(k)
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
@@ -328,7 +330,10 @@ class TrafficCore:
                 if roster.n_agents == 0
                 else np.full((self.batch_size, roster.n_agents), np.nan)
             )
-        return self._call(np.asarray(ego_accel, dtype=np.float64), k, roster, roster_accel)
+        step_mask = None if worlds is None else self._mask(worlds)
+        return self._call(
+            np.asarray(ego_accel, dtype=np.float64), k, roster, roster_accel, step_mask
+        )
 
     def step(
         self,

@@ -197,7 +197,7 @@ def idm_accel(
     """`idm` over arrays of any common broadcast shape (the same compiled function)."""
     values = (v_mps, gap_m, v_lead_mps, v0_mps, headway_s, a_mps2, b_mps2, s0_m, delta)
     args = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in values))
-    flat = [np.ascontiguousarray(x).ravel() for x in args]
+    flat = [np.array(x).ravel() for x in args]
     out = np.empty(flat[0].size)
     _idm_many(*flat, out)
     return out.reshape(args[0].shape)
@@ -260,9 +260,7 @@ def profile_accel_array(
         np.asarray(view.ego_pending, dtype=np.bool_),
     )
     shape = floats[0].shape
-    v, gap, vl, v0, hw, dx, ev, to_ov, prof, right, pend = (
-        np.ascontiguousarray(x).ravel() for x in floats
-    )
+    v, gap, vl, v0, hw, dx, ev, to_ov, prof, right, pend = (np.array(x).ravel() for x in floats)
     d = driver
     params = np.array(
         [

@@ -40,7 +40,13 @@ Episode end
     when stalled or out of time; at that moment every highway agent is truncated (the road goes on).
     A highway agent that leaves the road downstream terminates. `reset()` without a seed sends the
     next ramp vehicle into the same flowing traffic (`sim.continue_traffic`); `reset(seed=...)`
-    builds a fresh road in steady flow.
+    builds a fresh road in steady flow. `max_cycles` truncates every agent after that many env
+    steps of an episode (PettingZoo's convention).
+
+Factories
+    `parallel_env(...)` (this ParallelEnv) and `env(...)` / `raw_env(...)` (the AEC form,
+    `parallel_to_aec`), in PettingZoo's convention; `render_mode="human"` shows a window (needs
+    pygame: the `[video]` extra).
 """
 
 from __future__ import annotations
@@ -50,7 +56,8 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from pettingzoo import ParallelEnv
+from pettingzoo import AECEnv, ParallelEnv
+from pettingzoo.utils.conversions import parallel_to_aec
 
 from marlmerge.config import ScenarioConfig, load_scenario
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
@@ -91,7 +98,12 @@ def reward_terms(info: dict[str, Any]) -> dict[str, float]:
 
 
 class RampMergeParallelEnv(ParallelEnv):
-    metadata = {"name": ENV_NAME, "render_modes": ["rgb_array"], "render_fps": 10}
+    metadata = {
+        "name": ENV_NAME,
+        "render_modes": ["rgb_array", "human"],
+        "render_fps": 10,
+        "is_parallelizable": True,
+    }
 
     def __init__(
         self,
@@ -99,14 +111,22 @@ class RampMergeParallelEnv(ParallelEnv):
         render_mode: str | None = None,
         control: str = "all",
         overrides: dict[str, Any] | None = None,
+        max_cycles: int | None = None,
     ):
         if control not in ("all", "ego"):
             raise ValueError(f"control must be 'all' or 'ego', got {control!r}")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if render_mode not in (None, "rgb_array", "human"):
+            raise ValueError(
+                f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}"
+            )
+        if max_cycles is not None and (isinstance(max_cycles, bool) or max_cycles < 1):
+            raise ValueError(f"max_cycles must be None or an integer >= 1, got {max_cycles!r}")
         self.cfg = resolve_config(config, **(overrides or {}))
         self.render_mode = render_mode
         self.control = control
+        self.max_cycles = max_cycles
+        self._cycles = 0
+        self._viewer = None
         n_hw = self.cfg.sim.n_highway_agents if control == "all" else 0
         self.possible_agents = [EGO_AGENT] + [f"highway_{i}" for i in range(n_hw)]
         self.agents: list[str] = []
@@ -153,6 +173,7 @@ class RampMergeParallelEnv(ParallelEnv):
         else:
             self.core.reset()
         self._pick_roster()
+        self._cycles = 0
         self.agents = [EGO_AGENT] + list(self._slots)
         ego_obs, hw_obs = self.core.observe(self._roster)
         obs = self._observations(self.agents, ego_obs, hw_obs)
@@ -258,7 +279,12 @@ class RampMergeParallelEnv(ParallelEnv):
         infos = {EGO_AGENT: self._ego_info(ego_terms)}
         for a in hw_agents:
             infos[a] = self._highway_info(a, hw_terms[a])
+        self._cycles += 1
+        if self.max_cycles is not None and self._cycles >= self.max_cycles:
+            truncations = {a: truncations[a] or not terminations[a] for a in agents}
         self.agents = [a for a in agents if not (terminations[a] or truncations[a])]
+        if self.render_mode == "human":
+            self.render()
         return obs, rewards, terminations, truncations, infos
 
     def _observations(
@@ -273,14 +299,22 @@ class RampMergeParallelEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
+        """rgb_array: the frame; human: shows it in a window (needs pygame) and returns None."""
         if self.render_mode is None or self.core is None:
             return None
-        from marlmerge.render import render_frame
+        from marlmerge.render import Window, render_scene
 
-        return render_frame(self.core, world=0, agent_slots=self._slots)
+        if self.render_mode == "human":
+            if self._viewer is None:
+                self._viewer = Window(f"marlmerge - {self.cfg.name}", self.metadata["render_fps"])
+            self._viewer.show(render_scene(self.core, world=0, agent_slots=self.agent_slots))
+            return None
+        return render_scene(self.core, world=0, agent_slots=self.agent_slots)
 
     def close(self) -> None:
-        pass
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
 
     @property
     def agent_slots(self) -> dict[str, int]:
@@ -293,11 +327,25 @@ def parallel_env(
     render_mode: str | None = None,
     control: str = "all",
     overrides: dict[str, Any] | None = None,
+    max_cycles: int | None = None,
 ) -> RampMergeParallelEnv:
     """The ramp-merge PettingZoo ParallelEnv (documented in this module's docstring).
 
     config: a `ScenarioConfig`, a preset path or a preset name from `envs/`; defaults if None.
     control: "all" (ego and highway agents act) or "ego" (mainline traffic is scripted).
     overrides: dotted config keys, e.g. {"traffic.flow_vph_per_lane": 800}.
+    max_cycles: truncate every agent after this many env steps of an episode (PettingZoo's
+        episode cap; None: the ego's own limits only).
     """
-    return RampMergeParallelEnv(config, render_mode, control, overrides)
+    return RampMergeParallelEnv(config, render_mode, control, overrides, max_cycles)
+
+
+def raw_env(**kwargs: Any) -> AECEnv:
+    """The same env as an AEC env (agents act one after the other; `parallel_to_aec`)."""
+    return parallel_to_aec(parallel_env(**kwargs))
+
+
+def env(**kwargs: Any) -> AECEnv:
+    """The AEC env of `raw_env`, with PettingZoo's order checks (they come with the
+    conversion): `marlmerge.env()` in PettingZoo's `env()` / `parallel_env()` convention."""
+    return raw_env(**kwargs)
