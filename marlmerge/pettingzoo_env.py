@@ -60,6 +60,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from marlmerge.config import ScenarioConfig, load_scenario
+from marlmerge.presets import preset_dir
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
 from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
@@ -84,7 +85,7 @@ def find_preset(name: str | Path) -> Path:
     path = Path(name)
     if path.suffix == ".toml" and path.exists():
         return path
-    envs_dir = Path(__file__).resolve().parent.parent / "envs"
+    envs_dir = preset_dir("envs")
     candidate = envs_dir / f"{path.stem}.toml"
     if candidate.exists():
         return candidate

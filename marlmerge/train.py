@@ -46,6 +46,7 @@ from marlmerge.learners.quadq import (
     QuadraticQNet,
     unpack_rows,
 )
+from marlmerge.presets import preset_dir
 from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.spec.reward import EGO_TERMS
 
@@ -186,10 +187,8 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
     (unknown keys raise), `name` defaulting to the file's stem, with field overrides."""
     path = Path(path)
     if not path.exists():
-        known = sorted(
-            p.stem for p in (Path(__file__).resolve().parent.parent / "trainers").glob("*.toml")
-        )
-        candidate = Path(__file__).resolve().parent.parent / "trainers" / f"{path.stem}.toml"
+        known = sorted(p.stem for p in preset_dir("trainers").glob("*.toml"))
+        candidate = preset_dir("trainers") / f"{path.stem}.toml"
         if not candidate.exists():
             raise ValueError(f"unknown training preset {str(path)!r} (known: {', '.join(known)})")
         path = candidate
