@@ -151,11 +151,12 @@ class TrafficConfig:
 
     flow_vph_per_lane: float = 1200.0
     """Mean arrival flow per lane (Poisson arrivals), vehicles per hour per lane. A drawn arrival
-    enters when its own IDM can follow the last vehicle of its lane from the entrance braking no
-    harder than `driver.comfort_brake_mps2`, at its entry speed or else at that vehicle's speed;
-    otherwise it waits in the entrance queue (counted, never dropped)."""
+    enters at its entry speed once the gap to the last vehicle of its lane is at least its IDM
+    desired gap (it then brakes no harder than `driver.comfort_brake_mps2`); otherwise it waits
+    in the entrance queue (counted, never dropped)."""
     entry_speed_mps: tuple[float, float] = (24.0, 2.0)
-    """Initial speed at the entrance: (mean, std) of a normal, clipped to +-2 std."""
+    """Initial speed at the entrance: (mean, std) of a normal, clipped to +-2 std, and at most
+    the driver's desired speed."""
     warmup_s: float = 20.0
     """A freshly seeded road is filled with steady flow and then simulated this long."""
 

@@ -516,10 +516,9 @@ def arrivals(
     p: np.ndarray,
 ) -> None:
     """The first vehicle of each lane's entrance queue (drawn arrivals whose time has come) enters
-    at the entrance when its own IDM can follow the last vehicle of the lane from there braking
-    no harder than its comfortable deceleration b (`entry_speed`: at its drawn speed, else at the
-    speed of that vehicle); otherwise it waits; nobody is dropped. Queue lengths are counted
-    every step."""
+    at its drawn speed once the gap to the last vehicle of its lane is at least its IDM desired
+    gap (`entry_speed`: it then brakes no harder than its comfortable deceleration b);
+    otherwise it waits; nobody is dropped. Queue lengths are counted every step."""
     t = wf[b, WF_T]
     q_len = sched.shape[2]
     for lane in range(2):
