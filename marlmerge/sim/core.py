@@ -44,26 +44,28 @@ _NO_AGENTS = np.zeros((1 << 16, 0), dtype=bool)
 _NO_AGENTS.flags.writeable = False
 
 _announced: set[str] = set()
-_pending: list[threading.Timer] = []
+_said = threading.Event()
 
 
 def _announce_compilation(what: str) -> threading.Timer | None:
     """Say so when a first call takes long: the kernels are being compiled (then cached on
-    disk, so later processes load them). One message, also for nested first calls."""
-    if what in _announced or any(t.is_alive() for t in _pending):
+    disk, so later processes load them). Said once per process."""
+    if what in _announced or _said.is_set():
         return None
     _announced.add(what)
-    timer = threading.Timer(
-        1.0,
-        lambda: print(
-            "marlmerge: compiling the simulator kernels (first run only; cached on disk)...",
-            file=sys.stderr,
-            flush=True,
-        ),
-    )
+
+    def say() -> None:
+        if not _said.is_set():
+            _said.set()
+            print(
+                "marlmerge: compiling the simulator kernels (first run only; cached on disk)...",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    timer = threading.Timer(1.0, say)
     timer.daemon = True
     timer.start()
-    _pending[:] = [timer]
     return timer
 
 
@@ -133,6 +135,11 @@ class TrafficCore:
         self.wi = np.zeros((b, L.WI_ROWS), dtype=np.int64)
         self.lanes = np.full((b, 2, n_slots), -1, dtype=np.int64)
         self.sched = np.zeros((b, 3, q_len, L.SC_COLS))
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """(vf, vi, wf, wi, lanes, sched): the state the kernels take as one argument."""
+        return (self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched)
 
     @property
     def n_slots(self) -> int:
@@ -230,7 +237,7 @@ class TrafficCore:
         self._clear(rows)
         for b in rows:
             self._place(b, self.streams.fill(b))
-        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        kernels.rebuild_lanes(self.arrays, self.params, sel)
         n_warm = int(round(self.cfg.traffic.warmup_s / self.cfg.sim.dt_s))
         nan = np.full(self.batch_size, np.nan)
         done = 0
@@ -286,16 +293,14 @@ class TrafficCore:
         )
         if short.any():  # only after direct set-ups: every call leaves room for one next_ego
             self._serve(max(self._served_k, 1), rows[short])
-        kernels.next_ego(
-            self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched, self.params, sel
-        )
+        kernels.next_ego(self.arrays, self.params, sel)
         self._check_overflow()
 
     def remove_ego(self, mask: np.ndarray | None = None) -> None:
         """Take the ramp vehicle off the road in the worlds of `mask` (all if None): traffic-only
         worlds, until `next_ego` sends one again."""
         sel = self._mask(mask)
-        kernels.remove_ego(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        kernels.remove_ego(self.arrays, self.params, sel)
 
     def _mask(self, mask: np.ndarray | None) -> np.ndarray:
         if mask is None:
@@ -378,8 +383,7 @@ class TrafficCore:
         hw_obs = np.empty((b, n_agents, len(HIGHWAY_FEATURES)), dtype=np.float32)
         timer = None if self._called else _announce_compilation(repr(self._kernel))
         status = self._kernel(
-            *self._worlds,
-            self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched, self.params, k,
+            self.arrays, *self._worlds, self.params, k,
             self._all_worlds if step_mask is None else step_mask,
             ego_cmd, roster.rows, np.ascontiguousarray(roster_cmd, dtype=np.float64),
             ego_terms, hw_terms, trace, ego_obs, hw_obs,
@@ -423,7 +427,7 @@ class TrafficCore:
         to the ego's, nearest in time first; -1 where the lane holds fewer than k."""
         out = np.full((self.batch_size, k), -1, dtype=np.int64)
         if k > 0:
-            kernels.pick_roster(self.vf, self.vi, self.wi, self.lanes, out)
+            kernels.pick_roster(self.arrays, out)
         return out
 
     def make_roster(self, slots: np.ndarray) -> Roster:
@@ -442,7 +446,7 @@ class TrafficCore:
         roster = self._no_roster if roster is None else roster
         ego_obs = np.empty((self.batch_size, len(EGO_FEATURES)), dtype=np.float32)
         hw_obs = np.empty((self.batch_size, roster.n_agents, len(HIGHWAY_FEATURES)), np.float32)
-        kernels.observe(self.vf, self.vi, self.wf, self.params, roster.rows, ego_obs, hw_obs)
+        kernels.observe(self.arrays, self.params, roster.rows, ego_obs, hw_obs)
         return ego_obs, hw_obs
 
     def ego_gaps(self) -> EgoGaps:
@@ -507,7 +511,7 @@ class TrafficCore:
         self.wi[world, L.WI_NEXT_ID] += 1
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[world] = True
-        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        kernels.rebuild_lanes(self.arrays, self.params, sel)
         return s
 
     def place(self, world: int, slot: int, x_m: float, v_mps: float | None = None) -> None:
@@ -523,7 +527,7 @@ class TrafficCore:
             self.vi[world, L.VI_LANE, EGO] = L.RIGHT if x_m >= self.cfg.x_overlap_m else RAMP
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[world] = True
-        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        kernels.rebuild_lanes(self.arrays, self.params, sel)
 
     def clear_traffic(self, mask: np.ndarray | None = None) -> None:
         """Empty the roads of `mask` (all if None) and stop their arrivals: scenario set-ups
@@ -533,7 +537,7 @@ class TrafficCore:
         self.vi[sel, L.VI_ACTIVE, 1:] = 0
         self.vi[sel, L.VI_LANE, 1:] = RAMP
         self.sched[sel, :2, :, L.SC_T] = np.inf  # every drawn arrival postponed forever
-        kernels.rebuild_lanes(self.vf, self.vi, self.wf, self.wi, self.lanes, self.params, sel)
+        kernels.rebuild_lanes(self.arrays, self.params, sel)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

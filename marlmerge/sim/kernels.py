@@ -120,16 +120,9 @@ OVERFLOW = 1 << 32
 
 
 @kernel
-def _trace_row(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    b: int,
-    trace: np.ndarray,
-    i: int,
-) -> None:
+def _trace_row(S: tuple, b: int, trace: np.ndarray, i: int) -> None:
     """The ego after a step, with the metrics' conventions (no gap vehicle: inf gap, nan speed)."""
+    vf, vi, wf, wi, lanes, sched = S
     front, back = wi[b, WI_FRONT], wi[b, WI_BACK]
     trace[b, i, TR_X] = vf[b, VF_X, EGO]
     trace[b, i, TR_V] = vf[b, VF_V, EGO]
@@ -144,19 +137,12 @@ def _trace_row(
 
 @kernel
 def _roster_step(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    roster: np.ndarray,
-    hw_terms: np.ndarray,
-    live: bool,
+    S: tuple, b: int, p: np.ndarray, roster: np.ndarray, hw_terms: np.ndarray, live: bool
 ) -> None:
     """Add the step's terms of every counting highway agent (while the ego runs), then let go of
     the agents that left the road: towed away after a collision, or off the downstream end
     (`RO_EXITED`)."""
+    vf, vi, wf, wi, lanes, sched = S
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
     close_f, close_b = ego_closeness(p, x_e, v_e, wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB])
     blamed = ego_to_blame(p, wi[b, WI_EGO_REAR] == 1, wf[b, WF_EGO_IN_LANE])
@@ -200,17 +186,11 @@ def _roster_step(
 
 @kernel
 def observe_world(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    roster: np.ndarray,
-    ego_obs: np.ndarray,
-    hw_obs: np.ndarray,
+    S: tuple, b: int, p: np.ndarray, roster: np.ndarray, ego_obs: np.ndarray, hw_obs: np.ndarray
 ) -> None:
     """Scaled observations of world `b`: the ego's `EGO_FEATURES` into ego_obs[b] and each
     counting roster agent's `HIGHWAY_FEATURES` into hw_obs[b, j] (zeros where not counting)."""
+    vf, vi, wf, wi, lanes, sched = S
     ss, ps = p[P_SPEED_SCALE], p[P_POSITION_SCALE]
     v_limit, rng = p[P_V_LIMIT], p[P_SENSING]
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
@@ -246,36 +226,20 @@ def observe_world(
 
 
 @kernel
-def _needs_service(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    sched: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    k: int,
-) -> int:
+def _needs_service(S: tuple, b: int, p: np.ndarray, k: int) -> int:
     """1 if world `b` needs the Python side before another call of `k` steps (also `WI_NEED`):
     too few free slots (two arrivals a step, and one merged ego from a `next_ego` in between),
     drawn arrivals ending within the horizon, or fewer than two drawn ego departures left (one
     for a `next_ego` in between, one for the next)."""
-    need = _short(vf, vi, wf, wi, sched, b, p, k)
+    vf, vi, wf, wi, lanes, sched = S
+    need = _short(S, b, p, k)
     wi[b, WI_NEED] = need
     return need
 
 
 @kernel
-def _short(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    sched: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    k: int,
-) -> int:
+def _short(S: tuple, b: int, p: np.ndarray, k: int) -> int:
+    vf, vi, wf, wi, lanes, sched = S
     if wi[b, WI_N_ACTIVE] + 2 * k + 3 > vi.shape[2]:
         return 1
     q_len = sched.shape[2]
@@ -290,13 +254,8 @@ def _short(
 
 @kernel
 def rollout_world(
+    S: tuple,
     b: int,
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    sched: np.ndarray,
     p: np.ndarray,
     k: int,
     step_mask: np.ndarray,
@@ -313,6 +272,7 @@ def rollout_world(
     docstring). Outputs: ego_terms[b] [5], hw_terms[b] [K, 8], trace[b, :k] [TR_COLS], the
     observations, and per world `WI_SUBSTEPS`, the outcome reached (`WI_STEP_OUTCOME`) with the
     ego's collision partner. Returns `_needs_service`, plus `OVERFLOW` if the world overflowed."""
+    vf, vi, wf, wi, lanes, sched = S
     for s in range(vi.shape[2]):
         vi[b, VI_FLAGS, s] = 0
     for c in range(ego_terms.shape[1]):
@@ -328,35 +288,30 @@ def rollout_world(
             live = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
             if started and not live:
                 break
-            ego_hit = substep(vf, vi, wf, wi, lanes, sched, b, p, ego_cmd[b], roster, roster_cmd)
-            _trace_row(vf, vi, wf, wi, b, trace, i)
+            ego_hit = substep(S, b, p, ego_cmd[b], roster, roster_cmd)
+            _trace_row(S, b, trace, i)
             if live:
                 ego_steps += 1
                 add_ego_terms(
                     p, ego_terms, b, wf[b, WF_EGO_CMD], vf[b, VF_X, EGO], vf[b, VF_V, EGO],
                     wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB], ego_hit,
                 )  # fmt: skip
-            _roster_step(vf, vi, wf, wi, b, p, roster, hw_terms, live)
+            _roster_step(S, b, p, roster, hw_terms, live)
             if wi[b, WI_STEP_OUTCOME] != OUTCOME_NONE:
                 outcome = wi[b, WI_STEP_OUTCOME]
                 partner, rear = wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR]
             steps = i + 1
     wi[b, WI_STEP_OUTCOME], wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR] = outcome, partner, rear
     wi[b, WI_SUBSTEPS], wi[b, WI_EGO_STEPS] = steps, ego_steps
-    observe_world(vf, vi, wf, b, p, roster, ego_obs, hw_obs)
-    return _needs_service(vf, vi, wf, wi, sched, b, p, k) + OVERFLOW * wi[b, WI_OVERFLOW]
+    observe_world(S, b, p, roster, ego_obs, hw_obs)
+    return _needs_service(S, b, p, k) + OVERFLOW * wi[b, WI_OVERFLOW]
 
 
 @kernel
 def rollout(
+    S: tuple,
     lo: int,
     hi: int,
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    sched: np.ndarray,
     p: np.ndarray,
     k: int,
     step_mask: np.ndarray,
@@ -371,16 +326,12 @@ def rollout(
 ) -> int:
     """`rollout_world` for the worlds lo..hi-1, one after the other. Returns the sum of their
     statuses (how many need service, plus `OVERFLOW` for each that overflowed)."""
+    vf, vi, wf, wi, lanes, sched = S
     status = 0
     for b in range(lo, hi):
         status += rollout_world(
+            S,
             b,
-            vf,
-            vi,
-            wf,
-            wi,
-            lanes,
-            sched,
             p,
             k,
             step_mask,
@@ -398,13 +349,8 @@ def rollout(
 
 @kernel(parallel=True)
 def rollout_parallel(
+    S: tuple,
     n_chunks: int,
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    drawn: np.ndarray,
     p: np.ndarray,
     k: int,
     step_mask: np.ndarray,
@@ -418,20 +364,14 @@ def rollout_parallel(
     hw_obs: np.ndarray,
 ) -> int:
     """`rollout` over `n_chunks` equal chunks of the worlds in parallel threads: the same
-    results as one serial call, since worlds are independent. (`drawn` is `sched`: Numba's
-    parallel lowering reserves that name.)"""
-    n = vf.shape[0]
+    results as one serial call, since worlds are independent."""
+    n = S[0].shape[0]
     status = 0
     for c in prange(n_chunks):
         status += rollout(
+            S,
             (c * n) // n_chunks,
             ((c + 1) * n) // n_chunks,
-            vf,
-            vi,
-            wf,
-            wi,
-            lanes,
-            drawn,
             p,
             k,
             step_mask,
@@ -448,10 +388,12 @@ def rollout_parallel(
 
 
 @kernel
-def observe(vf, vi, wf, p, roster, ego_obs, hw_obs) -> None:  # fmt: skip
+def observe(
+    S: tuple, p: np.ndarray, roster: np.ndarray, ego_obs: np.ndarray, hw_obs: np.ndarray
+) -> None:
     """`observe_world` for every world."""
-    for b in range(vf.shape[0]):
-        observe_world(vf, vi, wf, b, p, roster, ego_obs, hw_obs)
+    for b in range(S[0].shape[0]):
+        observe_world(S, b, p, roster, ego_obs, hw_obs)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -460,25 +402,19 @@ def observe(vf, vi, wf, p, roster, ego_obs, hw_obs) -> None:  # fmt: skip
 
 
 @kernel
-def _tow_wrecks(vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int) -> None:
+def _tow_wrecks(S: tuple, b: int) -> None:
+    vf, vi, wf, wi, lanes, sched = S
     for s in range(1, vi.shape[2]):
         if vi[b, VI_COLLIDED, s] == 1:
-            deactivate(vi, wi, lanes, b, s)
+            deactivate(S, b, s)
             vi[b, VI_COLLIDED, s] = 0
 
 
 @kernel
-def _keep_merged_ego(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    b: int,
-    p: np.ndarray,
-) -> None:
+def _keep_merged_ego(S: tuple, b: int, p: np.ndarray) -> None:
     """A merged ego stays on the road as a neutral mainline driver in a free slot, in its place."""
-    s = free_slot(vi, b)
+    vf, vi, wf, wi, lanes, sched = S
+    s = free_slot(S, b)
     if s < 0:
         wi[b, WI_OVERFLOW] = 1
         return
@@ -490,29 +426,21 @@ def _keep_merged_ego(
     vi[b, VI_ID, s], vi[b, VI_COLLIDED, s], vi[b, VI_FLAGS, s] = wi[b, WI_NEXT_ID], 0, 0
     wi[b, WI_NEXT_ID] += 1
     wi[b, WI_N_ACTIVE] += 1
-    ll.replace(lanes, wi, b, RIGHT, EGO, s)
+    ll.replace(S, b, RIGHT, EGO, s)
     vi[b, VI_LANE, EGO] = RAMP  # no longer in a lane list
 
 
 @kernel
-def next_ego_world(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    sched: np.ndarray,
-    b: int,
-    p: np.ndarray,
-) -> None:
+def next_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
     """End the current ego of world `b` and send the next drawn one from the ramp start.
 
     A merged ego stays on the road; after a collision the ego and the vehicles it hit are towed
     away; a truncated ego is removed."""
+    vf, vi, wf, wi, lanes, sched = S
     if vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_SUCCESS:
-        _keep_merged_ego(vf, vi, wf, wi, lanes, b, p)
-    _tow_wrecks(vi, wi, lanes, b)
-    deactivate(vi, wi, lanes, b, EGO)
+        _keep_merged_ego(S, b, p)
+    _tow_wrecks(S, b)
+    deactivate(S, b, EGO)
     vi[b, VI_COLLIDED, EGO] = 0
     stream = EGO_STREAM
     if wi[b, WI_COUNT_RIGHT + stream] < 1:
@@ -540,52 +468,44 @@ def next_ego_world(
     wf[b, WF_EGO_T], wf[b, WF_EGO_STALL], wf[b, WF_EGO_IN_LANE] = 0.0, 0.0, 0.0
     wi[b, WI_OUTCOME] = OUTCOME_NONE
     wi[b, WI_EGO_COUNT] += 1
-    neighbours(vf, vi, wi, lanes, b, p)
-    ego_gaps(vf, vi, wf, wi, lanes, b, p)
+    neighbours(S, b, p)
+    ego_gaps(S, b, p)
 
 
 @kernel
-def remove_ego_world(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    b: int,
-    p: np.ndarray,
-) -> None:
+def remove_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
     """Take the ramp vehicle (and any wreck it left) off the road: a traffic-only world."""
-    _tow_wrecks(vi, wi, lanes, b)
-    deactivate(vi, wi, lanes, b, EGO)
+    vf, vi, wf, wi, lanes, sched = S
+    _tow_wrecks(S, b)
+    deactivate(S, b, EGO)
     vi[b, VI_COLLIDED, EGO] = 0
     wi[b, WI_OUTCOME] = OUTCOME_NONE
-    neighbours(vf, vi, wi, lanes, b, p)
-    ego_gaps(vf, vi, wf, wi, lanes, b, p)
+    neighbours(S, b, p)
+    ego_gaps(S, b, p)
 
 
 @kernel
-def next_ego(vf, vi, wf, wi, lanes, sched, p, mask) -> None:  # fmt: skip
+def next_ego(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """`next_ego_world` for the worlds of `mask`."""
-    for b in range(vf.shape[0]):
+    for b in range(S[0].shape[0]):
         if mask[b]:
-            next_ego_world(vf, vi, wf, wi, lanes, sched, b, p)
+            next_ego_world(S, b, p)
 
 
 @kernel
-def remove_ego(vf, vi, wf, wi, lanes, p, mask) -> None:  # fmt: skip
+def remove_ego(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """`remove_ego_world` for the worlds of `mask`."""
-    for b in range(vf.shape[0]):
+    for b in range(S[0].shape[0]):
         if mask[b]:
-            remove_ego_world(vf, vi, wf, wi, lanes, b, p)
+            remove_ego_world(S, b, p)
 
 
 @kernel
-def pick_roster(
-    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, out: np.ndarray
-) -> None:
+def pick_roster(S: tuple, out: np.ndarray) -> None:
     """out [B, K]: the right-lane vehicles whose arrival time at the merge point (at current
     speeds, at least 1 m/s) is closest to the ego's, nearest first (ties: lower slot first);
     -1 where the lane holds fewer than K."""
+    vf, vi, wf, wi, lanes, sched = S
     k = out.shape[1]
     for b in range(vf.shape[0]):
         t_e = -vf[b, VF_X, EGO] / max(vf[b, VF_V, EGO], 1.0)
@@ -611,9 +531,10 @@ def _in(out: np.ndarray, b: int, j: int, s: int) -> bool:
 
 
 @kernel
-def rebuild_lanes(vf, vi, wf, wi, lanes, p, mask) -> None:  # fmt: skip
+def rebuild_lanes(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """Lane lists of the worlds of `mask` from scratch (after placing vehicles directly): every
     active vehicle with a highway lane, downstream first (equal positions: lower slot first)."""
+    vf, vi, wf, wi, lanes, sched = S
     for b in range(vf.shape[0]):
         if not mask[b]:
             continue
@@ -628,9 +549,9 @@ def rebuild_lanes(vf, vi, wf, wi, lanes, p, mask) -> None:  # fmt: skip
             n_active += n
             for i in range(n, lanes.shape[2]):
                 lanes[b, lane, i] = -1
-            ll.resort(lanes, vf, wi, b, lane)  # stable: equal positions keep slot order
+            ll.resort(S, b, lane)  # stable: equal positions keep slot order
         if vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP:
             n_active += 1
         wi[b, WI_N_ACTIVE] = n_active
-        neighbours(vf, vi, wi, lanes, b, p)
-        ego_gaps(vf, vi, wf, wi, lanes, b, p)
+        neighbours(S, b, p)
+        ego_gaps(S, b, p)

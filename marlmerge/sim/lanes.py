@@ -10,20 +10,17 @@ when vehicles overlap (a collision), which one insertion-sort pass repairs.
 
 from __future__ import annotations
 
-import numpy as np
-
 from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import VF_X, WI_N_RIGHT
 
 
 @kernel(inline=True)
-def count_ahead(
-    lanes: np.ndarray, vf: np.ndarray, wi: np.ndarray, b: int, lane: int, x: float
-) -> int:
+def count_ahead(S: tuple, b: int, lane: int, x: float) -> int:
     """How many vehicles of `lane` are at or ahead of position `x`: the insertion index of `x`.
 
     The first of them (index - 1) is the nearest vehicle at or ahead of `x`, the entry at the
     index the nearest one behind it."""
+    vf, vi, wf, wi, lanes, sched = S
     lo, hi = 0, wi[b, WI_N_RIGHT + lane]
     while lo < hi:
         mid = (lo + hi) // 2
@@ -35,12 +32,11 @@ def count_ahead(
 
 
 @kernel(inline=True)
-def neighbours_at(
-    lanes: np.ndarray, vf: np.ndarray, wi: np.ndarray, b: int, lane: int, x: float
-) -> tuple[int, int]:
+def neighbours_at(S: tuple, b: int, lane: int, x: float) -> tuple[int, int]:
     """Slots of the nearest vehicle at or ahead of `x` and the nearest behind it in `lane`
     (-1 = none). `x` must not be the position of a vehicle of `lane` looked up for itself."""
-    i = count_ahead(lanes, vf, wi, b, lane, x)
+    vf, vi, wf, wi, lanes, sched = S
+    i = count_ahead(S, b, lane, x)
     n = wi[b, WI_N_RIGHT + lane]
     ahead = lanes[b, lane, i - 1] if i > 0 else -1
     behind = lanes[b, lane, i] if i < n else -1
@@ -48,9 +44,10 @@ def neighbours_at(
 
 
 @kernel
-def insert(lanes: np.ndarray, vf: np.ndarray, wi: np.ndarray, b: int, lane: int, slot: int) -> None:
+def insert(S: tuple, b: int, lane: int, slot: int) -> None:
     """Put `slot` into `lane` at its position (behind vehicles at the same position)."""
-    i = count_ahead(lanes, vf, wi, b, lane, vf[b, VF_X, slot])
+    vf, vi, wf, wi, lanes, sched = S
+    i = count_ahead(S, b, lane, vf[b, VF_X, slot])
     n = wi[b, WI_N_RIGHT + lane]
     for j in range(n, i, -1):
         lanes[b, lane, j] = lanes[b, lane, j - 1]
@@ -59,8 +56,9 @@ def insert(lanes: np.ndarray, vf: np.ndarray, wi: np.ndarray, b: int, lane: int,
 
 
 @kernel
-def remove(lanes: np.ndarray, wi: np.ndarray, b: int, lane: int, slot: int) -> bool:
+def remove(S: tuple, b: int, lane: int, slot: int) -> bool:
     """Take `slot` out of `lane`; False if it was not there."""
+    vf, vi, wf, wi, lanes, sched = S
     n = wi[b, WI_N_RIGHT + lane]
     for i in range(n):
         if lanes[b, lane, i] == slot:
@@ -73,9 +71,10 @@ def remove(lanes: np.ndarray, wi: np.ndarray, b: int, lane: int, slot: int) -> b
 
 
 @kernel
-def replace(lanes: np.ndarray, wi: np.ndarray, b: int, lane: int, old: int, new: int) -> None:
+def replace(S: tuple, b: int, lane: int, old: int, new: int) -> None:
     """Let `new` take `old`'s place in `lane` (a merged ego handing its place to its successor
     slot)."""
+    vf, vi, wf, wi, lanes, sched = S
     for i in range(wi[b, WI_N_RIGHT + lane]):
         if lanes[b, lane, i] == old:
             lanes[b, lane, i] = new
@@ -83,8 +82,9 @@ def replace(lanes: np.ndarray, wi: np.ndarray, b: int, lane: int, old: int, new:
 
 
 @kernel
-def resort(lanes: np.ndarray, vf: np.ndarray, wi: np.ndarray, b: int, lane: int) -> None:
+def resort(S: tuple, b: int, lane: int) -> None:
     """Restore downstream-first order after a step (insertion sort: one pass when in order)."""
+    vf, vi, wf, wi, lanes, sched = S
     n = wi[b, WI_N_RIGHT + lane]
     for i in range(1, n):
         s = lanes[b, lane, i]

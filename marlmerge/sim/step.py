@@ -138,11 +138,10 @@ INF = math.inf
 
 
 @kernel
-def neighbours(
-    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
-) -> None:
+def neighbours(S: tuple, b: int, p: np.ndarray) -> None:
     """Leader, follower, bumper gap and leader speed of every vehicle from the lane lists (gap
     inf and the own speed when there is no leader). The ego on the ramp has no neighbours."""
+    vf, vi, wf, wi, lanes, sched = S
     length = p[P_LEN]
     for lane in range(2):
         prev = -1
@@ -188,8 +187,7 @@ def driver_params(p: np.ndarray) -> tuple:
 
 @kernel(inline=True)
 def _scripted_accel(
-    vf: np.ndarray,
-    vi: np.ndarray,
+    S: tuple,
     b: int,
     s: int,
     dp: tuple,
@@ -203,6 +201,7 @@ def _scripted_accel(
 ) -> float:
     """Scripted acceleration of slot `s` at position x, speed v, and the given leader gap and
     speed (pre-step state), clipped to the vehicle limits. dp: `driver_params`."""
+    vf, vi, wf, wi, lanes, sched = S
     acc, _ = profile_accel(
         vi[b, VI_PROFILE, s],
         v,
@@ -230,8 +229,9 @@ def _scripted_accel(
 
 
 @kernel(inline=True)
-def _move(vf: np.ndarray, b: int, s: int, acc: float, dt: float) -> None:
+def _move(S: tuple, b: int, s: int, acc: float, dt: float) -> None:
     """Ballistic update of slot `s`; a vehicle that stops within the step stops where v = 0."""
+    vf, vi, wf, wi, lanes, sched = S
     v_old = vf[b, VF_V, s]
     v_new = max(v_old + acc * dt, 0.0)
     if v_new == 0.0:
@@ -247,15 +247,11 @@ def _move(vf: np.ndarray, b: int, s: int, acc: float, dt: float) -> None:
 
 @kernel
 def mark_controlled(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    roster: np.ndarray,
-    roster_cmd: np.ndarray,
+    S: tuple, b: int, p: np.ndarray, roster: np.ndarray, roster_cmd: np.ndarray
 ) -> None:
     """Flag (`EV_CONTROLLED`) the highway agents driven by an external command this step and
     put the command, clipped to the agent bounds, into `VF_ACC`. NaN commands: scripted."""
+    vf, vi, wf, wi, lanes, sched = S
     for j in range(roster.shape[2]):
         s = roster[RO_SLOT, b, j]
         cmd = roster_cmd[b, j]
@@ -267,21 +263,13 @@ def mark_controlled(
 
 
 @kernel
-def advance(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    ego_cmd: float,
-) -> int:
+def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
     """Accelerations on the pre-step state and the ballistic update, in one sweep per lane from
     downstream (each vehicle's leader is still known as it was before the step). Mainline drivers
     follow their profile, controlled agents their command (`mark_controlled`), the ego its
     command clipped to its bounds (NaN: plain IDM, ignoring the merge). Returns how many
     vehicles moved."""
+    vf, vi, wf, wi, lanes, sched = S
     dt = p[P_DT]
     dp = driver_params(p)
     length = dp[6]
@@ -303,30 +291,31 @@ def advance(
             if s == EGO:
                 acc = ego_a
                 if ego_idm:
-                    acc = _scripted_accel(vf, vi, b, s, dp, x, v, gap, vl, False, x_e, v_e)
+                    acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, False, x_e, v_e)
                 wf[b, WF_EGO_CMD] = acc
             elif flags & EV_CONTROLLED:
                 acc = vf[b, VF_ACC, s]
             else:
-                acc = _scripted_accel(vf, vi, b, s, dp, x, v, gap, vl, pending, x_e, v_e)
+                acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pending, x_e, v_e)
             vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED)
-            _move(vf, b, s, acc, dt)
+            _move(S, b, s, acc, dt)
             x_lead, v_lead = x, v
         moved += n
     if pending:  # on the ramp: no leader
         acc = ego_a
         if ego_idm:
-            acc = _scripted_accel(vf, vi, b, EGO, dp, x_e, v_e, INF, v_e, False, x_e, v_e)
+            acc = _scripted_accel(S, b, EGO, dp, x_e, v_e, INF, v_e, False, x_e, v_e)
         wf[b, WF_EGO_CMD] = acc
         vi[b, VI_FLAGS, EGO] &= ~(EV_HIT | EV_TOW)
-        _move(vf, b, EGO, acc, dt)
+        _move(S, b, EGO, acc, dt)
         moved += 1
     return moved
 
 
 @kernel(inline=True)
-def _idm_of(vf: np.ndarray, b: int, s: int, gap: float, v_lead: float, dp: tuple) -> float:
+def _idm_of(S: tuple, b: int, s: int, gap: float, v_lead: float, dp: tuple) -> float:
     """IDM acceleration of slot `s` (its own v0 and T, the base a, b, s0) at a hypothetical gap."""
+    vf, vi, wf, wi, lanes, sched = S
     return idm(
         vf[b, VF_V, s], gap, v_lead, vf[b, VF_V0, s], vf[b, VF_T, s], dp[0], dp[1], dp[2], dp[3]
     )
@@ -334,25 +323,16 @@ def _idm_of(vf: np.ndarray, b: int, s: int, gap: float, v_lead: float, dp: tuple
 
 @kernel
 def _mobil_wants_change(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    b: int,
-    s: int,
-    p: np.ndarray,
-    dp: tuple,
-    pending: bool,
-    x_e: float,
-    v_e: float,
+    S: tuple, b: int, s: int, p: np.ndarray, dp: tuple, pending: bool, x_e: float, v_e: float
 ) -> bool:
     """MOBIL for slot `s` on the pre-step state: incentive + keep-right bias above the threshold,
     and safe (the new follower brakes no harder than `safe_brake_mps2`, both gaps above s0)."""
+    vf, vi, wf, wi, lanes, sched = S
     length, s0 = p[P_LEN], p[P_S0]
     lane = vi[b, VI_LANE, s]
     target = 1 - lane
     x, v = vf[b, VF_X, s], vf[b, VF_V, s]
-    t_lead, t_follow = ll.neighbours_at(lanes, vf, wi, b, target, x)
+    t_lead, t_follow = ll.neighbours_at(S, b, target, x)
     gap_t, v_t = INF, v
     if t_lead >= 0:
         gap_t, v_t = vf[b, VF_X, t_lead] - x - length, vf[b, VF_V, t_lead]
@@ -362,20 +342,18 @@ def _mobil_wants_change(
     if t_follow >= 0:  # the new follower: before (behind the target leader) and after (behind s)
         back_gap_t = x - vf[b, VF_X, t_follow] - length
         a_nf_before = _idm_of(
-            vf, b, t_follow, vf[b, VF_GAP, t_follow], vf[b, VF_VLEAD, t_follow], dp
+            S, b, t_follow, vf[b, VF_GAP, t_follow], vf[b, VF_VLEAD, t_follow], dp
         )
-        a_nf_after = _idm_of(vf, b, t_follow, back_gap_t, v, dp)
+        a_nf_after = _idm_of(S, b, t_follow, back_gap_t, v, dp)
         others += a_nf_after - a_nf_before
     of = vi[b, VI_FOLLOWER, s]
     if of >= 0:  # the old follower: before (behind s) and after (behind s's leader)
         gap_back = vf[b, VF_GAP, of]
-        a_of_before = _idm_of(vf, b, of, gap_back, v, dp)
-        a_of_after = _idm_of(
-            vf, b, of, gap_back + length + vf[b, VF_GAP, s], vf[b, VF_VLEAD, s], dp
-        )
+        a_of_before = _idm_of(S, b, of, gap_back, v, dp)
+        a_of_after = _idm_of(S, b, of, gap_back + length + vf[b, VF_GAP, s], vf[b, VF_VLEAD, s], dp)
         others += a_of_after - a_of_before
-    a_now = _idm_of(vf, b, s, vf[b, VF_GAP, s], vf[b, VF_VLEAD, s], dp)
-    a_tgt = _idm_of(vf, b, s, gap_t, v_t, dp)
+    a_now = _idm_of(S, b, s, vf[b, VF_GAP, s], vf[b, VF_VLEAD, s], dp)
+    a_tgt = _idm_of(S, b, s, gap_t, v_t, dp)
     incentive = a_tgt - a_now + vf[b, VF_POL, s] * others
     bias = -p[P_KEEP_RIGHT] if target == LEFT else p[P_KEEP_RIGHT]
     if target == LEFT and pending and vi[b, VI_PROFILE, s] == COOPERATIVE:
@@ -387,11 +365,10 @@ def _mobil_wants_change(
 
 
 @kernel
-def lane_change_decisions(
-    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
-) -> int:
+def lane_change_decisions(S: tuple, b: int, p: np.ndarray) -> int:
     """Flag (`EV_CHANGE`) the scripted mainline vehicles that change lanes after this step,
     decided on the pre-step state. Returns how many."""
+    vf, vi, wf, wi, lanes, sched = S
     pending = vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
     dp = driver_params(p)
@@ -403,47 +380,46 @@ def lane_change_decisions(
                 continue
             if vf[b, VF_SINCE_LC, s] < p[P_LC_COOLDOWN]:
                 continue
-            if _mobil_wants_change(vf, vi, wi, lanes, b, s, p, dp, pending, x_e, v_e):
+            if _mobil_wants_change(S, b, s, p, dp, pending, x_e, v_e):
                 vi[b, VI_FLAGS, s] |= EV_CHANGE
                 n += 1
     return n
 
 
 @kernel
-def apply_lane_changes(
-    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int
-) -> None:
+def apply_lane_changes(S: tuple, b: int) -> None:
     """Move the flagged vehicles to the other lane, at their new positions."""
+    vf, vi, wf, wi, lanes, sched = S
     for lane in range(2):
         i = 0
         while i < wi[b, WI_N_RIGHT + lane]:
             s = lanes[b, lane, i]
             if vi[b, VI_FLAGS, s] & EV_CHANGE:
                 vi[b, VI_FLAGS, s] &= ~EV_CHANGE
-                ll.remove(lanes, wi, b, lane, s)
+                ll.remove(S, b, lane, s)
                 vi[b, VI_LANE, s] = 1 - lane
                 vf[b, VF_SINCE_LC, s] = 0.0
-                ll.insert(lanes, vf, wi, b, 1 - lane, s)
+                ll.insert(S, b, 1 - lane, s)
             else:
                 i += 1
 
 
 @kernel
-def deactivate(vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, s: int) -> None:
+def deactivate(S: tuple, b: int, s: int) -> None:
     """Take slot `s` off the road (out of its lane list, inactive)."""
+    vf, vi, wf, wi, lanes, sched = S
     lane = vi[b, VI_LANE, s]
     if lane >= RIGHT:
-        ll.remove(lanes, wi, b, lane, s)
+        ll.remove(S, b, lane, s)
     if vi[b, VI_ACTIVE, s] == 1:
         wi[b, WI_N_ACTIVE] -= 1
     vi[b, VI_ACTIVE, s] = 0
 
 
 @kernel
-def exits(
-    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
-) -> None:
+def exits(S: tuple, b: int, p: np.ndarray) -> None:
     """Vehicles past the downstream end leave (the ego never does: its episode ends first)."""
+    vf, vi, wf, wi, lanes, sched = S
     for lane in range(2):
         i = 0
         while i < wi[b, WI_N_RIGHT + lane]:
@@ -453,14 +429,15 @@ def exits(
             if s == EGO:
                 i += 1
                 continue
-            deactivate(vi, wi, lanes, b, s)
+            deactivate(S, b, s)
             vi[b, VI_FLAGS, s] |= EV_EXITED
             wi[b, WI_EXITED] += 1
 
 
 @kernel
-def free_slot(vi: np.ndarray, b: int) -> int:
+def free_slot(S: tuple, b: int) -> int:
     """The lowest free mainline slot, -1 if none."""
+    vf, vi, wf, wi, lanes, sched = S
     for s in range(1, vi.shape[2]):
         if vi[b, VI_ACTIVE, s] == 0:
             return s
@@ -469,10 +446,7 @@ def free_slot(vi: np.ndarray, b: int) -> int:
 
 @kernel
 def spawn(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
+    S: tuple,
     b: int,
     s: int,
     lane: int,
@@ -485,6 +459,7 @@ def spawn(
     p: np.ndarray,
 ) -> None:
     """A new mainline vehicle in slot `s` (a fresh vehicle id), put into its lane list."""
+    vf, vi, wf, wi, lanes, sched = S
     vf[b, VF_X, s] = x
     vf[b, VF_V, s] = v
     vf[b, VF_A, s] = 0.0
@@ -501,24 +476,16 @@ def spawn(
     vi[b, VI_FLAGS, s] &= EV_COLLIDED | EV_EXITED  # what the slot saw earlier in this call
     wi[b, WI_NEXT_ID] += 1
     wi[b, WI_N_ACTIVE] += 1
-    ll.insert(lanes, vf, wi, b, lane, s)
+    ll.insert(S, b, lane, s)
 
 
 @kernel
-def arrivals(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    sched: np.ndarray,
-    b: int,
-    p: np.ndarray,
-) -> None:
+def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
     """The first vehicle of each lane's entrance queue (drawn arrivals whose time has come) enters
     at its drawn speed once the gap to the last vehicle of its lane is at least its IDM desired
     gap (`entry_speed`: it then brakes no harder than its comfortable deceleration b);
     otherwise it waits; nobody is dropped. Queue lengths are counted every step."""
+    vf, vi, wf, wi, lanes, sched = S
     t = wf[b, WF_T]
     q_len = sched.shape[2]
     for lane in range(2):
@@ -539,15 +506,12 @@ def arrivals(
                     p[P_S0],
                 )
             if v_enter >= 0.0:
-                s = free_slot(vi, b)
+                s = free_slot(S, b)
                 if s < 0:
                     wi[b, WI_OVERFLOW] = 1
                 else:
                     spawn(
-                        vf,
-                        vi,
-                        wi,
-                        lanes,
+                        S,
                         b,
                         s,
                         lane,
@@ -573,21 +537,14 @@ def arrivals(
 
 
 @kernel
-def ego_join(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    b: int,
-    p: np.ndarray,
-) -> None:
+def ego_join(S: tuple, b: int, p: np.ndarray) -> None:
     """The ego becomes a right-lane vehicle once its body overlaps the lane."""
+    vf, vi, wf, wi, lanes, sched = S
     if vi[b, VI_ACTIVE, EGO] == 0:
         return
     if vi[b, VI_LANE, EGO] == RAMP and vf[b, VF_X, EGO] >= p[P_X_OVERLAP]:
         vi[b, VI_LANE, EGO] = RIGHT
-        ll.insert(lanes, vf, wi, b, RIGHT, EGO)
+        ll.insert(S, b, RIGHT, EGO)
     if vi[b, VI_LANE, EGO] == RIGHT:
         wf[b, WF_EGO_IN_LANE] += p[P_DT]
     else:
@@ -595,14 +552,13 @@ def ego_join(
 
 
 @kernel
-def collisions(
-    vf: np.ndarray, vi: np.ndarray, wi: np.ndarray, lanes: np.ndarray, b: int, p: np.ndarray
-) -> tuple[bool, bool]:
+def collisions(S: tuple, b: int, p: np.ndarray) -> tuple[bool, bool]:
     """Overlapping consecutive vehicles of a lane collide (gaps from `neighbours`). Returns
     whether the ego had a new collision and whether wrecks were towed away; the ego's partner
     and whether it was the rear vehicle go to `WI_EGO_PARTNER` / `WI_EGO_REAR`. Mainline wrecks
     are towed away at once (counted as background collisions); the ego's wreck and its partner
     stay, flagged, until `next_ego`."""
+    vf, vi, wf, wi, lanes, sched = S
     ego_was_collided = vi[b, VI_COLLIDED, EGO] == 1
     ego_hit = False
     towed = 0
@@ -632,24 +588,16 @@ def collisions(
             while i < wi[b, WI_N_RIGHT + lane]:
                 s = lanes[b, lane, i]
                 if vi[b, VI_FLAGS, s] & EV_TOW and vi[b, VI_COLLIDED, s] == 0:
-                    deactivate(vi, wi, lanes, b, s)
+                    deactivate(S, b, s)
                 else:
                     i += 1
     return ego_hit, towed > 0
 
 
 @kernel
-def ego_episode(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    running: bool,
-    ego_hit: bool,
-) -> None:
+def ego_episode(S: tuple, b: int, p: np.ndarray, running: bool, ego_hit: bool) -> None:
     """The running ego's clocks and the outcome it reaches in this step (`WI_STEP_OUTCOME`)."""
+    vf, vi, wf, wi, lanes, sched = S
     dt = p[P_DT]
     if not running:
         wf[b, WF_EGO_STALL] = 0.0
@@ -671,23 +619,16 @@ def ego_episode(
 
 
 @kernel
-def ego_gaps(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    b: int,
-    p: np.ndarray,
-) -> None:
+def ego_gaps(S: tuple, b: int, p: np.ndarray) -> None:
     """The ego's gap-front and gap-back vehicles: its right-lane neighbours (projected onto the
     lane while it is on the ramp), within the sensing range. A missing one is a virtual vehicle
     at the edge of the range driving at the speed limit."""
+    vf, vi, wf, wi, lanes, sched = S
     x_e = vf[b, VF_X, EGO]
     if vi[b, VI_LANE, EGO] == RIGHT:
         front, back = vi[b, VI_LEADER, EGO], vi[b, VI_FOLLOWER, EGO]
     else:
-        front, back = ll.neighbours_at(lanes, vf, wi, b, RIGHT, x_e)
+        front, back = ll.neighbours_at(S, b, RIGHT, x_e)
     rng, length, v_limit = p[P_SENSING], p[P_LEN], p[P_V_LIMIT]
     if front >= 0 and vf[b, VF_X, front] - x_e > rng:
         front = -1
@@ -710,41 +651,32 @@ def ego_gaps(
 
 @kernel
 def substep(
-    vf: np.ndarray,
-    vi: np.ndarray,
-    wf: np.ndarray,
-    wi: np.ndarray,
-    lanes: np.ndarray,
-    sched: np.ndarray,
-    b: int,
-    p: np.ndarray,
-    ego_cmd: float,
-    roster: np.ndarray,
-    roster_cmd: np.ndarray,
+    S: tuple, b: int, p: np.ndarray, ego_cmd: float, roster: np.ndarray, roster_cmd: np.ndarray
 ) -> bool:
     """Advance world `b` by one simulator step (see the module docstring). Returns whether the
     ego collided in this step. Needs the neighbours of the pre-step state (every call leaves
     them computed)."""
+    vf, vi, wf, wi, lanes, sched = S
     wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR], wi[b, WI_STEP_OUTCOME] = -1, 0, OUTCOME_NONE
-    mark_controlled(vf, vi, b, p, roster, roster_cmd)
+    mark_controlled(S, b, p, roster, roster_cmd)
     n_changes = 0
     if wi[b, WI_STEPS] % int(p[P_LC_EVERY]) == 0:
-        n_changes = lane_change_decisions(vf, vi, wi, lanes, b, p)
-    wi[b, WI_VEH_STEPS] += advance(vf, vi, wf, wi, lanes, b, p, ego_cmd)
+        n_changes = lane_change_decisions(S, b, p)
+    wi[b, WI_VEH_STEPS] += advance(S, b, p, ego_cmd)
     wf[b, WF_T] += p[P_DT]
     wi[b, WI_STEPS] += 1
     if n_changes:
-        apply_lane_changes(vf, vi, wi, lanes, b)
+        apply_lane_changes(S, b)
     for lane in range(2):
-        ll.resort(lanes, vf, wi, b, lane)
-    exits(vf, vi, wi, lanes, b, p)
-    arrivals(vf, vi, wf, wi, lanes, sched, b, p)
-    ego_join(vf, vi, wf, wi, lanes, b, p)
+        ll.resort(S, b, lane)
+    exits(S, b, p)
+    arrivals(S, b, p)
+    ego_join(S, b, p)
     running = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
-    neighbours(vf, vi, wi, lanes, b, p)
-    ego_hit, towed = collisions(vf, vi, wi, lanes, b, p)
+    neighbours(S, b, p)
+    ego_hit, towed = collisions(S, b, p)
     if towed:
-        neighbours(vf, vi, wi, lanes, b, p)  # the towed wrecks are gone
-    ego_episode(vf, vi, wf, wi, b, p, running, ego_hit)
-    ego_gaps(vf, vi, wf, wi, lanes, b, p)
+        neighbours(S, b, p)  # the towed wrecks are gone
+    ego_episode(S, b, p, running, ego_hit)
+    ego_gaps(S, b, p)
     return ego_hit
