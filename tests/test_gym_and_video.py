@@ -7,7 +7,7 @@ import gymnasium
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
-from pettingzoo.test import api_test, max_cycles_test, render_test
+from pettingzoo.test import api_test, max_cycles_test, render_test, seed_test
 
 import marlmerge
 from marlmerge.config import ScenarioConfig
@@ -112,6 +112,7 @@ def test_episode_video_has_one_frame_per_simulator_step(tmp_path):
 
 def test_pettingzoo_suite_on_every_entry_point():
     api_test(marlmerge.env(), num_cycles=200)
+    seed_test(marlmerge.env, num_cycles=100)
     max_cycles_test(marlmerge)
     render_test(marlmerge.env)
     meta = marlmerge.parallel_env().metadata
