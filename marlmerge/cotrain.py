@@ -58,6 +58,7 @@ from torch import Tensor
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+from marlmerge import files
 from marlmerge.config import ScenarioConfig, from_dict, to_dict
 from marlmerge.learners.baselines_rl import _read_policy_file
 from marlmerge.learners.quadq import (
@@ -412,7 +413,7 @@ class JointPolicy:
 
 def save_ego_policy(path: Path, net: QuadraticQNet, cfg: CoTrainConfig, scen: ScenarioConfig):
     """The ego in the `policy.pt` format of `train.py` (readable by `load_policy`, the grid)."""
-    torch.save(
+    files.save(
         {
             "algorithm": "quadq",
             "config": {**to_dict(cfg), "hidden": cfg.hidden},
@@ -426,7 +427,7 @@ def save_ego_policy(path: Path, net: QuadraticQNet, cfg: CoTrainConfig, scen: Sc
 def save_highway_policy(
     path: Path, state: dict[str, Tensor], cfg: CoTrainConfig, scen: ScenarioConfig
 ) -> None:
-    torch.save(
+    files.save(
         {
             "group": GROUP,
             "profile": cfg.profile,
@@ -450,7 +451,7 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
         path = path / "highway_policy.pt"
     if not path.exists():
         raise ValueError(f"no saved highway policy at {path}")
-    saved = torch.load(path, weights_only=False)
+    saved = files.load(path, "highway policy")
     scen = from_dict(ScenarioConfig, saved["scenario"])
     return snapshot_policy(saved["net"], saved["hidden"], scen)
 
@@ -511,7 +512,7 @@ def cotrain(
     if resume:
         if not ckpt_path.exists():
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
-        ckpt = torch.load(ckpt_path, weights_only=False)
+        ckpt = files.load(ckpt_path, "checkpoint")
         cfg = from_dict(CoTrainConfig, ckpt["config"])  # a resumed run continues that run
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=1))
     torch.set_num_threads(cfg.threads)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -35,6 +34,7 @@ from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+from marlmerge import files
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import from_dict, to_dict, tomllib
 from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy, make_learner
@@ -306,10 +306,9 @@ class EgoTracker:
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    """Write atomically: a run killed while saving keeps its previous checkpoint."""
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    """Write atomically (a run killed while saving keeps its previous checkpoint), as tensors
+    and plain data only (`marlmerge.files`)."""
+    files.save(payload, path)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -349,7 +348,7 @@ def train(
     if resume:
         if not ckpt_path.exists():
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
-        ckpt = torch.load(ckpt_path, weights_only=False)
+        ckpt = files.load(ckpt_path, "checkpoint")
         saved_cfg = from_dict(TrainConfig, ckpt["config"])
         if saved_cfg != cfg:
             cfg = saved_cfg  # the checkpoint's config wins: a resumed run continues that run
@@ -579,7 +578,7 @@ def train(
             saved_policy["net"] = net.state_dict()
         else:
             saved_policy.update(learner.policy_state())
-        torch.save(saved_policy, out / "policy.pt")
+        files.save(saved_policy, out / "policy.pt")
         if cfg.eval_episodes > 0:
             from marlmerge.evaluate import evaluate_policy
 

@@ -6,6 +6,7 @@ import json
 import pytest
 import torch
 
+from marlmerge import files
 from marlmerge.learners.baselines_rl import (
     DQNLearner,
     EpsilonGreedy,
@@ -68,7 +69,7 @@ def test_tiny_run_end_to_end_and_load_policy(tmp_path, algorithm):
     assert len(_rows(tmp_path / "egos.csv")) - 1 == result.egos > 0
     ev = json.loads((tmp_path / "evaluation.json").read_text())
     assert ev["episodes"] == 4
-    saved = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    saved = files.load(tmp_path / "checkpoint.pt")
     assert saved["algorithm"] == algorithm and "learner" in saved
 
     policy = load_policy(tmp_path)  # a run folder or its policy.pt
@@ -88,17 +89,17 @@ def test_killed_run_resumes_bit_exact(tmp_path, algorithm):
     straight = train(cfg, tmp_path / "a", progress=False)
     # killed after 2,560 steps; its last checkpoint is at 2,048 and its logs run past it
     train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=2_560)
-    saved = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    saved = files.load(tmp_path / "b" / "checkpoint.pt")
     assert saved["sim_steps"] == 2_048
     resumed = train(cfg, tmp_path / "b", resume=True, progress=False)
     assert resumed.sim_steps == straight.sim_steps and resumed.updates == straight.updates
     assert _rows(tmp_path / "a" / "egos.csv") == _rows(tmp_path / "b" / "egos.csv")
     assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
-    wa = torch.load(tmp_path / "a" / "policy.pt", weights_only=False)["net"]
-    wb = torch.load(tmp_path / "b" / "policy.pt", weights_only=False)["net"]
+    wa = files.load(tmp_path / "a" / "policy.pt")["net"]
+    wb = files.load(tmp_path / "b" / "policy.pt")["net"]
     assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-    ca = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)["learner"]["loss"]
-    cb = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["learner"]["loss"]
+    ca = files.load(tmp_path / "a" / "checkpoint.pt")["learner"]["loss"]
+    cb = files.load(tmp_path / "b" / "checkpoint.pt")["learner"]["loss"]
     assert all(torch.equal(ca[k], cb[k]) for k in ca)  # online and target networks
 
 

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import marlmerge
+from marlmerge import files
 from marlmerge.cli import main
 from marlmerge.cotrain import CoTrainConfig, cotrain, load_cotrain_config, load_highway_policy
 from marlmerge.learners.baselines_rl import load_policy
@@ -51,7 +52,7 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
         "ego_2.pt",
         "ego_4.pt",
     ]
-    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    ckpt = files.load(tmp_path / "checkpoint.pt")
     for group in ("ego", "highway"):  # weights, target, optimiser and replay of both groups
         state = ckpt[group]
         assert state["updates"] > 0 and state["optimizer"] is not None
@@ -71,10 +72,8 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
     totals = [sum(row) for row in sel["failures"]]
     best = sel["candidate_phase_index"].index(sel["chosen_phase_index"])
     assert totals[best] == min(totals) and totals[best + 1 :].count(min(totals)) == 0
-    chosen = torch.load(
-        tmp_path / "pool" / f"ego_{sel['chosen_phase_index']}.pt", weights_only=False
-    )
-    saved = torch.load(tmp_path / "policy.pt", weights_only=False)
+    chosen = files.load(tmp_path / "pool" / f"ego_{sel['chosen_phase_index']}.pt")
+    saved = files.load(tmp_path / "policy.pt")
     assert all(torch.equal(chosen["net"][k], saved["net"][k]) for k in saved["net"])
     # saved policies load through the common interfaces
     ego = load_policy(tmp_path)
@@ -100,16 +99,16 @@ def test_a_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     cotrain(cfg, full, progress=False)
     # killed mid-way through the adversary phase (after a checkpoint at 6,144 steps)
     cotrain(cfg, cut, progress=False, stop_after_sim_steps=6_700)
-    ckpt = torch.load(cut / "checkpoint.pt", weights_only=False)
+    ckpt = files.load(cut / "checkpoint.pt")
     assert ckpt["phase_index"] == 1 and ckpt["phase_done"] > 0  # inside the adversary phase
     assert not (cut / "policy.pt").exists()
     cotrain(cfg, cut, resume=True, progress=False)
-    a = torch.load(full / "policy.pt", weights_only=False)["net"]
-    b = torch.load(cut / "policy.pt", weights_only=False)["net"]
+    a = files.load(full / "policy.pt")["net"]
+    b = files.load(cut / "policy.pt")["net"]
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    ha = torch.load(full / "highway_policy.pt", weights_only=False)["net"]
-    hb = torch.load(cut / "highway_policy.pt", weights_only=False)["net"]
+    ha = files.load(full / "highway_policy.pt")["net"]
+    hb = files.load(cut / "highway_policy.pt")["net"]
     for k in ha:
         assert torch.equal(ha[k], hb[k]), k
     assert (full / "egos.csv").read_text() == (cut / "egos.csv").read_text()

@@ -6,6 +6,7 @@ import json
 import pytest
 import torch
 
+from marlmerge import files
 from marlmerge.cli import main
 from marlmerge.train import TrainConfig, load_train_config, train
 
@@ -67,14 +68,14 @@ def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
     # killed after 5,120 steps; its last checkpoint is at 4,096 and its logs run past it
     train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=5_120)
     killed_rows = len(_rows(tmp_path / "b" / "egos.csv"))
-    saved = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    saved = files.load(tmp_path / "b" / "checkpoint.pt")
     assert saved["sim_steps"] == 4_096 and saved["ego_rows"] < killed_rows - 1
     resumed = train(cfg, tmp_path / "b", resume=True, progress=False)
     assert resumed.sim_steps == straight.sim_steps and resumed.updates == straight.updates
     assert _rows(tmp_path / "a" / "egos.csv") == _rows(tmp_path / "b" / "egos.csv")
     assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
-    wa = torch.load(tmp_path / "a" / "policy.pt", weights_only=False)["net"]
-    wb = torch.load(tmp_path / "b" / "policy.pt", weights_only=False)["net"]
+    wa = files.load(tmp_path / "a" / "policy.pt")["net"]
+    wb = files.load(tmp_path / "b" / "policy.pt")["net"]
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 

@@ -42,6 +42,7 @@ from torchrl.data import Bounded, Categorical
 from torchrl.modules import MLP, Actor, QValueActor, ValueOperator
 from torchrl.objectives import DQNLoss, SoftUpdate, TD3Loss
 
+from marlmerge import files
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
     GaussianExploration,
@@ -696,9 +697,7 @@ def _read_policy_file(path: str | Path) -> dict:
     path = Path(path)
     if path.is_dir():
         path = path / "policy.pt"
-    if not path.exists():
-        raise ValueError(f"no saved policy at {path}")
-    return torch.load(path, weights_only=False)
+    return files.load(path, "saved policy")
 
 
 def _scenario(saved: dict):

@@ -1,0 +1,76 @@
+"""Saved files — policies and checkpoints — hold tensors and plain data only, never code.
+
+`save` writes atomically (a run killed while saving keeps the previous file) and turns NumPy
+arrays into tensors tagged to come back as arrays; `load` reads with
+`torch.load(weights_only=True)`, which refuses any pickled Python object, so a `policy.pt` or
+`checkpoint.pt` from someone else cannot run code on this machine. Every failure is a
+`ValueError` naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+_NUMPY = "__numpy__"
+"""Key of a one-entry dict that stands for a NumPy array (its data as a tensor)."""
+
+
+def _plain(obj: Any) -> Any:
+    """`obj` with NumPy arrays as tagged tensors and NumPy scalars as Python numbers."""
+    if isinstance(obj, np.ndarray):
+        return {_NUMPY: torch.from_numpy(np.ascontiguousarray(obj))}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):  # dict or OrderedDict (a state_dict), kept as it is
+        return type(obj)((k, _plain(v)) for k, v in obj.items())
+    if isinstance(obj, list | tuple):
+        return type(obj)(_plain(v) for v in obj)
+    return obj
+
+
+def _restore(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        if len(obj) == 1 and _NUMPY in obj:
+            return obj[_NUMPY].numpy()
+        return type(obj)((k, _restore(v)) for k, v in obj.items())
+    if isinstance(obj, list | tuple):
+        return type(obj)(_restore(v) for v in obj)
+    return obj
+
+
+def save(obj: dict[str, Any], path: str | Path) -> None:
+    """Write `obj` (tensors, NumPy arrays, numbers, strings, lists, tuples, dicts) to `path`."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(_plain(obj), tmp)
+    os.replace(tmp, path)
+
+
+def load(path: str | Path, what: str = "file") -> dict[str, Any]:
+    """Read a file written by `save`; `what` names it in errors ("checkpoint", "policy")."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"no {what} at {path}")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        found = re.findall(r"GLOBAL (\S+) was not an allowed global", str(e))
+        raise ValueError(
+            f"{path}: refused to load this {what}: it holds pickled Python objects, not only "
+            "tensors and plain data, and loading those could run code"
+            + (f" (the first: {found[0]})" if found else "")
+            + "; checkpoints written by marlmerge 0.2 are of this kind: train them again"
+        ) from None
+    except (RuntimeError, EOFError, OSError) as e:
+        why = "an empty file" if path.stat().st_size == 0 else f"truncated or corrupt: {e}"
+        raise ValueError(f"{path}: not a readable {what} ({why})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: not a marlmerge {what} (holds a {type(data).__name__})")
+    return _restore(data)
