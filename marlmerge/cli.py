@@ -10,6 +10,7 @@ import json
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -336,12 +337,27 @@ def _backend_args(p: argparse.ArgumentParser) -> None:
         default="process",
         help="serial, process (default: worker processes on every core) or ray",
     )
-    p.add_argument("--workers", type=int, default=None, help="processes / local Ray CPUs")
+    p.add_argument("--workers", type=_at_least(1), default=None, help="processes / local Ray CPUs")
     p.add_argument(
         "--address",
         default=None,
         help="Ray cluster to join (e.g. auto after `ray start --head`); default: a local one",
     )
+
+
+def _at_least(low: int) -> Callable[[str], int]:
+    """argparse type: an integer >= `low` (argparse names the option in its error)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -370,9 +386,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("evaluate", help="evaluate a saved policy greedily")
     e.add_argument("policy", help="a run folder or a policy.pt file")
-    e.add_argument("--episodes", type=int, default=200)
-    e.add_argument("--seed", type=int, default=1_000_000, help="first held-out road seed")
-    e.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
+    e.add_argument("--episodes", type=_at_least(1), default=200)
+    e.add_argument("--seed", type=_at_least(0), default=1_000_000, help="first held-out road seed")
+    e.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")
     e.add_argument("--scenario", default=None, help="evaluate on another scenario preset")
     e.add_argument(
         "--highway",
@@ -411,9 +427,9 @@ def build_parser() -> argparse.ArgumentParser:
         "[label=]PRESET+highway:RUN_GLOB for learned highway agents (repeatable; default: every "
         "envs/grid_*.toml)",
     )
-    g.add_argument("--episodes", type=int, default=30, help="episodes per condition")
-    g.add_argument("--seed", type=int, default=2_000_000, help="first evaluation seed")
-    g.add_argument("--worlds", type=int, default=50, help="episodes run in parallel")
+    g.add_argument("--episodes", type=_at_least(1), default=30, help="episodes per condition")
+    g.add_argument("--seed", type=_at_least(0), default=2_000_000, help="first evaluation seed")
+    g.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")
     g.add_argument("--out", default="runs/grid")
     g.add_argument("--no-progress", action="store_true")
     _backend_args(g)
@@ -425,8 +441,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="drive ramp vehicles through scripted traffic")
     s.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
-    s.add_argument("--episodes", type=int, default=20)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--episodes", type=_at_least(1), default=20)
+    s.add_argument("--seed", type=_at_least(0), default=0)
     s.add_argument(
         "--ego",
         choices=EGO_RULES,
@@ -454,8 +470,10 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="record greedy episodes as a video (.mp4 or .gif)")
     r.add_argument("policy", help="hold, idm, gap, or a run folder / policy.pt")
     r.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
-    r.add_argument("--episodes", type=int, default=1)
-    r.add_argument("--seed", type=int, default=1_000_000, help="first road seed (held-out)")
+    r.add_argument("--episodes", type=_at_least(1), default=1)
+    r.add_argument(
+        "--seed", type=_at_least(0), default=1_000_000, help="first road seed (held-out)"
+    )
     r.add_argument("--view", choices=("merge", "follow"), default="merge")
     r.add_argument("--highway", default=None, help="a saved highway policy driving the agents")
     r.add_argument("--out", default="runs/episode.mp4", help="video file (.mp4 or .gif)")

@@ -376,11 +376,19 @@ def from_dict(cls: type[T], data: dict[str, Any], _prefix: str = "") -> T:
     return cls(**kwargs)
 
 
+def read_toml(path: Path) -> dict[str, Any]:
+    """A TOML file's tables; a syntax error is a `ValueError` naming the file and the line."""
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"{path}: not valid TOML: {err}") from None
+
+
 def load_scenario(path: str | Path) -> ScenarioConfig:
     """Load a scenario preset (TOML) strictly on top of the defaults."""
     path = Path(path)
-    with path.open("rb") as fh:
-        data = tomllib.load(fh)
+    data = read_toml(path)
     data.setdefault("name", path.stem)
     try:
         return from_dict(ScenarioConfig, data)
@@ -388,10 +396,139 @@ def load_scenario(path: str | Path) -> ScenarioConfig:
         raise ValueError(f"{path}: {err}") from None
 
 
+_RULES: dict[str, tuple[str, Any]] = {
+    ">0": ("> 0", lambda v: v > 0),
+    ">=0": (">= 0", lambda v: v >= 0),
+    ">=1": (">= 1", lambda v: v >= 1),
+    "[0,1]": ("in [0, 1]", lambda v: 0 <= v <= 1),
+}
+
+
+def check_values(cfg: Any, rules: dict[str, str], prefix: str = "") -> None:
+    """Every number in the (nested) dataclass `cfg` is finite, and each key named in `rules`
+    (dotted, e.g. `"road.lane_width_m"`) obeys its rule: `">0"`, `">=0"`, `">=1"` or `"[0,1]"`;
+    a rule on a pair (a range) applies to both ends and requires low <= high. Raises
+    `ValueError` naming the full key and the value."""
+    for f in dataclasses.fields(cfg):
+        key, value = prefix + f.name, getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            check_values(value, rules, key + ".")
+            continue
+        items = value if isinstance(value, tuple) else (value,)
+        numbers = [v for v in items if isinstance(v, int | float) and not isinstance(v, bool)]
+        if not numbers:
+            continue
+        if not all(math.isfinite(v) for v in numbers):
+            raise ValueError(f"{key} must be finite, got {value!r}")
+        rule = rules.get(key)
+        if rule is None:
+            continue
+        text, ok = _RULES[rule]
+        if not all(ok(v) for v in numbers):
+            raise ValueError(f"{key} must be {text}, got {value!r}")
+        if isinstance(value, tuple) and len(value) == 2 and value[0] > value[1]:
+            raise ValueError(f"{key} must be a range (low, high) with low <= high, got {value!r}")
+
+
+SCENARIO_RULES = {
+    **dict.fromkeys(
+        [
+            "road.lane_width_m",
+            "road.ramp_width_m",
+            "road.highway_upstream_m",
+            "road.highway_downstream_m",
+            "road.merge_zone_m",
+            "road.speed_limit_mph",
+            "vehicle.length_m",
+            "vehicle.width_m",
+            "vehicle.max_brake_mps2",
+            "vehicle.max_accel_mps2",
+            "driver.accel_mps2",
+            "driver.comfort_brake_mps2",
+            "driver.min_gap_m",
+            "driver.delta",
+            "driver.desired_speed_factor",
+            "driver.time_headway_s",
+            "driver.safe_brake_mps2",
+            "driver.yield_max_brake_mps2",
+            "driver.adversarial_speed_factor",
+            "driver.adversarial_time_headway_s",
+            "driver.adversarial_accel_mps2",
+            "ego.sensing_range_m",
+            "ego.max_episode_s",
+            "ego.stall_time_s",
+            "reward.speed_over_scale_mps",
+            "interaction.hard_brake_mps2",
+            "sim.dt_s",
+        ],
+        ">0",
+    ),
+    **dict.fromkeys(
+        [
+            "road.ramp_length_m",
+            "driver.politeness",
+            "driver.lane_change_cooldown_s",
+            "driver.interaction_range_m",
+            "traffic.flow_vph_per_lane",
+            "traffic.warmup_s",
+            "ego.start_speed_mps",
+            "ego.stall_speed_mps",
+            "reward.w_accel",
+            "reward.w_front",
+            "reward.w_back",
+            "reward.w_speed",
+            "reward.safe_headway_s",
+            "reward.safe_min_gap_m",
+            "reward.collision_penalty",
+            "reward.w_highway_speed",
+            "interaction.w_ego_collision",
+            "interaction.w_ego_hard_brake_per_s",
+            "interaction.w_ego_stall",
+            "interaction.w_ego_unsafe_gap_per_s",
+            "interaction.own_collision_penalty",
+            "interaction.cut_in_grace_s",
+            "sim.n_highway_agents",
+        ],
+        ">=0",
+    ),
+    "driver.mix_cooperative": "[0,1]",
+    "driver.mix_neutral": "[0,1]",
+    "driver.mix_adversarial": "[0,1]",
+    "reward.speed_low_fraction": "[0,1]",
+    "driver.lane_change_every_steps": ">=1",
+    "sim.action_repeat": ">=1",
+}
+"""Signs and ranges of the scenario's numbers (every number must be finite besides)."""
+MAX_WARMUP_S = 600.0
+"""A fresh road is simulated this long at most before its first episode (steady flow is reached
+within one pass of the road, well under a minute at any legal speed)."""
+
+
 def validate(cfg: ScenarioConfig) -> None:
-    """Cross-field checks that the types alone cannot express."""
+    """The scenario's numbers (`SCENARIO_RULES`), then the cross-field checks that single
+    values cannot express."""
+    check_values(cfg, SCENARIO_RULES)
     r, e, d, s, t = cfg.road, cfg.ego, cfg.driver, cfg.sim, cfg.traffic
+    mean_mps, std_mps = t.entry_speed_mps
     checks: list[tuple[bool, str]] = [
+        (
+            mean_mps > 0 and std_mps >= 0,
+            f"traffic.entry_speed_mps must be (mean > 0, std >= 0), got {t.entry_speed_mps}",
+        ),
+        (
+            mean_mps - 2 * std_mps > 0,
+            "traffic.entry_speed_mps: mean - 2 std (the slowest entry speed) must be > 0, "
+            f"got {t.entry_speed_mps}",
+        ),
+        (
+            t.warmup_s <= MAX_WARMUP_S,
+            f"traffic.warmup_s must be <= {MAX_WARMUP_S:g} s, got {t.warmup_s}",
+        ),
+        (
+            d.comfort_brake_mps2 <= cfg.vehicle.max_brake_mps2,
+            f"driver.comfort_brake_mps2 must be <= vehicle.max_brake_mps2 "
+            f"({cfg.vehicle.max_brake_mps2}), got {d.comfort_brake_mps2}",
+        ),
         (r.merge_zone_m > 0, f"road.merge_zone_m must be > 0, got {r.merge_zone_m}"),
         (r.ramp_length_m >= 0, f"road.ramp_length_m must be >= 0, got {r.ramp_length_m}"),
         (

@@ -59,7 +59,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge import files
-from marlmerge.config import ScenarioConfig, from_dict, to_dict
+from marlmerge.config import ScenarioConfig, check_values, from_dict, to_dict
 from marlmerge.learners.baselines_rl import _read_policy_file
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
@@ -82,6 +82,30 @@ from marlmerge.train import (
 
 PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
 PHASES = ("pretrain", "adversary", "ego")
+
+
+COTRAIN_RULES = {
+    **dict.fromkeys(
+        [
+            "num_worlds", "env_steps_per_batch", "pool_size", "batch_size",
+            "target_update_period", "hidden", "replay_capacity", "updates_per_call", "threads",
+            "loss_log_every", "checkpoint_every_sim_steps", "eval_worlds",
+        ],
+        ">=1",
+    ),
+    **dict.fromkeys(
+        [
+            "seed", "ego_pretrain_sim_steps", "rounds", "adversary_sim_steps", "ego_sim_steps",
+            "learning_starts", "ego_updates_per_sim_step", "highway_updates_per_sim_step",
+            "ego_sigma_start", "ego_sigma_end", "ego_sigma_cotrain", "highway_sigma_start",
+            "highway_sigma_end", "eval_episodes", "eval_seed", "select_episodes", "select_seed",
+        ],
+        ">=0",
+    ),
+    "lr": ">0",
+    "scripted_fraction": "[0,1]",
+}  # fmt: skip
+"""Signs and ranges of the co-training numbers (`marlmerge.config.check_values`)."""
 
 
 @dataclass(frozen=True)
@@ -153,7 +177,13 @@ class CoTrainConfig:
     """First seed of the selection episodes (apart from `eval_seed` and the grid's seeds)."""
 
     def __post_init__(self) -> None:
+        check_values(self, COTRAIN_RULES)
         checks = [
+            (
+                self.replay_capacity >= self.batch_size,
+                f"replay_capacity ({self.replay_capacity}) must be >= batch_size "
+                f"({self.batch_size})",
+            ),
             (
                 self.profile in PROFILES,
                 f"profile must be one of {tuple(PROFILES)}, got {self.profile!r}",

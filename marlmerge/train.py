@@ -36,7 +36,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge import files
 from marlmerge.batched_env import BatchedMergeEnv
-from marlmerge.config import from_dict, to_dict, tomllib
+from marlmerge.config import check_values, from_dict, read_toml, to_dict
 from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy, make_learner
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
@@ -51,6 +51,32 @@ from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.spec.reward import EGO_TERMS
 
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
+
+
+TRAIN_RULES = {
+    **dict.fromkeys(
+        [
+            "total_sim_steps", "num_worlds", "env_steps_per_batch", "batch_size",
+            "target_update_period", "hidden", "replay_capacity", "updates_per_call", "threads",
+            "loss_log_every", "checkpoint_every_sim_steps", "eval_worlds",
+            "mlp_hidden_layers", "td3_policy_delay",
+        ],
+        ">=1",
+    ),
+    **dict.fromkeys(
+        [
+            "seed", "updates_per_sim_step", "learning_starts", "sigma_start", "sigma_end",
+            "eval_episodes", "eval_seed", "td3_target_noise", "td3_target_noise_clip",
+        ],
+        ">=0",
+    ),
+    "lr": ">0",
+    "td3_tau": ">0",
+    "sigma_decay_fraction": "[0,1]",
+    "epsilon_start": "[0,1]",
+    "epsilon_end": "[0,1]",
+}  # fmt: skip
+"""Signs and ranges of the training numbers (`marlmerge.config.check_values`)."""
 
 
 @dataclass(frozen=True)
@@ -131,7 +157,13 @@ class TrainConfig:
     """... clipped to +- this, m/s^2 (TD3's 0.5 x 3.5)."""
 
     def __post_init__(self) -> None:
+        check_values(self, TRAIN_RULES)
         checks = [
+            (
+                self.replay_capacity >= self.batch_size,
+                f"replay_capacity ({self.replay_capacity}) must be >= batch_size "
+                f"({self.batch_size})",
+            ),
             (
                 self.algorithm in ALGORITHMS,
                 f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
@@ -192,8 +224,7 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
         if not candidate.exists():
             raise ValueError(f"unknown training preset {str(path)!r} (known: {', '.join(known)})")
         path = candidate
-    with path.open("rb") as fh:
-        data = tomllib.load(fh)
+    data = read_toml(path)
     data.setdefault("name", path.stem)
     data.update(overrides)
     try:

@@ -1,5 +1,6 @@
 """Strict preset loading and config validation."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -55,3 +56,71 @@ def test_cross_field_validation():
 def test_round_trip_through_dicts():
     cfg = ScenarioConfig().replace(**{"traffic.flow_vph_per_lane": 700})
     assert from_dict(ScenarioConfig, to_dict(cfg)) == cfg
+
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("road.speed_limit_mph", 0.0, "must be > 0"),
+        ("road.speed_limit_mph", NAN, "must be finite"),
+        ("sim.dt_s", INF, "must be finite"),
+        ("ego.sensing_range_m", -1.0, "must be > 0"),
+        ("traffic.entry_speed_mps", (-3.0, 1.0), "mean > 0"),
+        ("traffic.entry_speed_mps", (3.0, 2.0), "slowest entry speed"),
+        ("road.lane_width_m", 0.0, "must be > 0"),
+        ("vehicle.length_m", -5.0, "must be > 0"),
+        ("driver.accel_mps2", 0.0, "must be > 0"),
+        ("driver.comfort_brake_mps2", 0.0, "must be > 0"),
+        ("driver.min_gap_m", 0.0, "must be > 0"),
+        ("driver.delta", 0.0, "must be > 0"),
+        ("driver.time_headway_s", (1.8, 1.0), "low <= high"),
+        ("traffic.warmup_s", 1e5, "must be <= 600"),
+        ("reward.w_front", -1.0, "must be >= 0"),
+        ("ego.start_speed_mps", (-1.0, 5.0), "must be >= 0"),
+    ],
+)
+def test_bad_scenario_numbers_are_refused_naming_key_and_value(key, value, message):
+    with pytest.raises(ValueError, match=re.escape(key) + ".*" + re.escape(message)) as err:
+        ScenarioConfig().replace(**{key: value})
+    shown = str(value[0] if isinstance(value, tuple) else value)
+    assert shown in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("lr", -1.0),
+        ("sigma_start", -1.0),
+        ("batch_size", 0),
+        ("hidden", 0),
+        ("checkpoint_every_sim_steps", 0),
+        ("replay_capacity", 0),
+        ("eval_worlds", 0),
+        ("gamma", NAN),
+    ],
+)
+def test_bad_training_numbers_are_refused_before_any_work(key, value, capsys):
+    from marlmerge.cli import main
+
+    assert main(["train", "quick", "--set", f"{key}={value}", "--out", "/nonexistent/x"]) == 2
+    err = capsys.readouterr().err
+    assert f"quick.toml: {key} must be" in err and str(value) in err
+
+
+def test_a_toml_syntax_error_names_the_file(tmp_path):
+    p = tmp_path / "broken.toml"
+    p.write_text("[traffic]\nflow_vph_per_lane = \n")
+    with pytest.raises(ValueError, match=r"broken\.toml: not valid TOML.*line 2"):
+        load_scenario(p)
+
+
+@pytest.mark.parametrize("argv", [["evaluate", "x", "--episodes", "0"], ["grid", "--worlds", "0"]])
+def test_bad_cli_numbers_are_refused_naming_the_option(argv, capsys):
+    from marlmerge.cli import main
+
+    with pytest.raises(SystemExit):
+        main(argv)
+    assert f"argument {argv[-2]}: must be >= 1, got 0" in capsys.readouterr().err
