@@ -12,6 +12,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -128,6 +129,22 @@ def _parse_sets(items: list[str]) -> dict:
     return out
 
 
+def _run_config(cls: type, out: Path, cfg: Any, sets: dict[str, Any], resume: bool) -> Any:
+    """The config a run in `out` trains with: `cfg` for a new run, the checkpoint's when
+    resuming (a `--set` that differs from it is an error naming the key)."""
+    from marlmerge.train import resume_config
+
+    has_run = (out / "checkpoint.pt").exists()
+    if has_run and not resume:
+        raise ValueError(
+            f"{out} already holds a run: pass --resume to continue it, or --out to "
+            "start a new one elsewhere"
+        )
+    if resume and not has_run:
+        raise ValueError(f"--resume: no checkpoint at {out / 'checkpoint.pt'}")
+    return resume_config(cls, out, cfg, sets) if resume else cfg
+
+
 def train_cmd(args: argparse.Namespace) -> int:
     """Train the ego with the quadratic-Q learner; evaluate and plot at the end."""
     from marlmerge.train import TrainConfig, load_train_config, train
@@ -140,17 +157,17 @@ def train_cmd(args: argparse.Namespace) -> int:
 
         cfg = from_dict(TrainConfig, {**to_dict(TrainConfig()), **sets})
     out = Path(args.out or f"runs/{cfg.name}")
-    if (out / "checkpoint.pt").exists() and not args.resume:
-        raise ValueError(
-            f"{out} already holds a run: pass --resume to continue it, or --out to "
-            "start a new one elsewhere"
-        )
+    cfg = _run_config(TrainConfig, out, cfg, sets, args.resume)
     print(
         f"training {cfg.name!r} on scenario {cfg.scenario!r}: {cfg.total_sim_steps:,} simulator "
         f"steps in {cfg.num_worlds} worlds, seed {cfg.seed}, writing {out}",
         flush=True,
     )
     result = train(cfg, out, resume=args.resume, progress=not args.no_progress)
+    if result.already_finished:
+        print(f"{out} had finished training and been evaluated: nothing to do, nothing changed")
+        _print_evaluation(result.evaluation or {})
+        return 0
     print(
         f"done: {result.sim_steps:,} simulator steps, {result.updates:,} updates, "
         f"{result.egos:,} ramp vehicles in {result.wall_s:.0f} s "
@@ -164,15 +181,12 @@ def train_cmd(args: argparse.Namespace) -> int:
 
 def cotrain_cmd(args: argparse.Namespace) -> int:
     """Co-train learned highway agents and the ego (alternating phases)."""
-    from marlmerge.cotrain import cotrain, load_cotrain_config
+    from marlmerge.cotrain import CoTrainConfig, cotrain, load_cotrain_config
 
-    cfg = load_cotrain_config(args.preset, **_parse_sets(args.set))
+    sets = _parse_sets(args.set)
+    cfg = load_cotrain_config(args.preset, **sets)
     out = Path(args.out or f"runs/{cfg.name}")
-    if (out / "checkpoint.pt").exists() and not args.resume:
-        raise ValueError(
-            f"{out} already holds a run: pass --resume to continue it, or --out to "
-            "start a new one elsewhere"
-        )
+    cfg = _run_config(CoTrainConfig, out, cfg, sets, args.resume)
     phases = ", ".join(f"{kind} {n:,}" for kind, n in cfg.phases())
     print(
         f"co-training {cfg.name!r} ({cfg.profile} highway agents) on scenario "

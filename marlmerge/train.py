@@ -22,8 +22,10 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -46,6 +48,7 @@ from marlmerge.learners.quadq import (
     QuadraticQNet,
     unpack_rows,
 )
+from marlmerge.pettingzoo_env import resolve_config
 from marlmerge.presets import preset_dir
 from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.spec.reward import EGO_TERMS
@@ -268,17 +271,28 @@ class CsvLog:
     """Append-only CSV that can be cut back to a checkpoint's row count on resume."""
 
     def __init__(self, path: Path, fields: tuple[str, ...], keep_rows: int | None):
+        """A new log, or (`keep_rows` given: a resumed run) the log cut back to its first
+        `keep_rows` rows, rewritten atomically. A resumed run's log must hold those rows."""
         self.path = path
         self.fields = fields
         rows: list[list[str]] = []
-        if keep_rows is not None and path.exists():
-            with path.open(newline="") as fh:
-                rows = list(csv.reader(fh))[1 : 1 + keep_rows]
+        if keep_rows is not None:
+            rows = _read_rows(path, fields)
+            if len(rows) < keep_rows:
+                raise ValueError(
+                    f"{path}: holds {len(rows)} rows, the checkpoint needs its first {keep_rows} "
+                    "(the log was deleted or cut): the run cannot be resumed exactly"
+                )
+            rows = rows[:keep_rows]
+        tmp = path.with_name(path.name + ".tmp")
+        with tmp.open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(fields)
+            writer.writerows(rows)
+        os.replace(tmp, path)
         self.rows = len(rows)
-        self.fh = path.open("w", newline="")
+        self.fh = path.open("a", newline="")
         self.writer = csv.writer(self.fh)
-        self.writer.writerow(fields)
-        self.writer.writerows(rows)
 
     def write(self, row: list[Any]) -> None:
         self.writer.writerow(row)
@@ -331,6 +345,17 @@ class EgoTracker:
         return finished
 
 
+def _read_rows(path: Path, fields: tuple[str, ...]) -> list[list[str]]:
+    """The data rows of a log written by `CsvLog` (a missing or foreign file is an error)."""
+    if not path.is_file():
+        raise ValueError(f"{path}: missing: the run's logs are needed to resume it exactly")
+    with path.open(newline="") as fh:
+        table = list(csv.reader(fh))
+    if not table or tuple(table[0]) != fields:
+        raise ValueError(f"{path}: not this run's log (header {table[:1]}, expected {fields})")
+    return table[1:]
+
+
 # ----------------------------------------------------------------------------------------------
 # Checkpoints
 # ----------------------------------------------------------------------------------------------
@@ -340,6 +365,20 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     """Write atomically (a run killed while saving keeps its previous checkpoint), as tensors
     and plain data only (`marlmerge.files`)."""
     files.save(payload, path)
+
+
+def resume_config(cls: type[C], out: Path, requested: C, set_keys: Iterable[str]) -> C:
+    """The config of the run in `out` that `--resume` continues. A key given with `--set` must
+    agree with it (a resumed run continues that run: nothing is resumable with other values)."""
+    saved = from_dict(cls, files.load(out / "checkpoint.pt", "checkpoint")["config"])
+    for key in set_keys:
+        if getattr(saved, key) != getattr(requested, key):
+            raise ValueError(
+                f"--set {key}={getattr(requested, key)!r} differs from the run being resumed "
+                f"({key} = {getattr(saved, key)!r} in {out / 'checkpoint.pt'}): a resumed run "
+                "continues with its own config; start a new run with --out to change it"
+            )
+    return saved
 
 
 # ----------------------------------------------------------------------------------------------
@@ -358,6 +397,8 @@ class TrainResult:
     collect_s: float
     compile_s: float | None
     evaluation: dict[str, float] | None
+    already_finished: bool = False
+    """`--resume` found the run finished, with its policy and evaluation: nothing was changed."""
 
 
 def train(
@@ -385,6 +426,9 @@ def train(
             cfg = saved_cfg  # the checkpoint's config wins: a resumed run continues that run
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=1))
     torch.set_num_threads(cfg.threads)
+
+    if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
+        return _finish_resumed(cfg, out, ckpt)
 
     # ---- environment, network, loss, exploration
     env = BatchedMergeEnv(cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed)
@@ -581,6 +625,8 @@ def train(
             for r in recent:
                 tb.add_scalar("charts/total_reward", r["total_reward"], r["ego"])
         recent = recent[-200:]
+        if sim_steps >= cfg.total_sim_steps:  # the policy first: a finished checkpoint has one
+            save_policy(out / "policy.pt", cfg, scen, net, learner)
         if sim_steps >= next_ckpt or sim_steps >= cfg.total_sim_steps:
             checkpoint()
             next_ckpt += cfg.checkpoint_every_sim_steps
@@ -599,28 +645,7 @@ def train(
 
     evaluation = None
     if finished:
-        # policy.pt: everything `baselines_rl.load_policy` needs to rebuild the greedy policy
-        saved_policy = {
-            "algorithm": cfg.algorithm,
-            "config": to_dict(cfg),
-            "scenario": to_dict(scen),
-        }
-        if learner is None:
-            saved_policy["net"] = net.state_dict()
-        else:
-            saved_policy.update(learner.policy_state())
-        files.save(saved_policy, out / "policy.pt")
-        if cfg.eval_episodes > 0:
-            from marlmerge.evaluate import evaluate_policy
-
-            greedy = net.greedy if learner is None else learner.greedy
-            evaluation = evaluate_policy(
-                greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
-            )
-            (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1))
-        from marlmerge.plots import plot_run
-
-        plot_run(out)
+        evaluation = _evaluate_and_plot(cfg, out, net.greedy if learner is None else learner.greedy)
     result = TrainResult(
         out,
         sim_steps,
@@ -651,6 +676,57 @@ def train(
         )
     )
     return result
+
+
+def save_policy(path: Path, cfg: TrainConfig, scen, net, learner) -> None:
+    """policy.pt: everything `baselines_rl.load_policy` needs to rebuild the greedy policy."""
+    saved = {"algorithm": cfg.algorithm, "config": to_dict(cfg), "scenario": to_dict(scen)}
+    if learner is None:
+        saved["net"] = net.state_dict()
+    else:
+        saved.update(learner.policy_state())
+    files.save(saved, path)
+
+
+def _evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:
+    """The greedy policy on the held-out roads (`evaluation.json`), and the run's figures."""
+    evaluation = None
+    if cfg.eval_episodes > 0:
+        from marlmerge.evaluate import evaluate_policy
+
+        scen = resolve_config(cfg.scenario)
+        evaluation = evaluate_policy(
+            greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+        )
+        atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
+    from marlmerge.plots import plot_run
+
+    plot_run(out)
+    return evaluation
+
+
+def _finish_resumed(cfg: TrainConfig, out: Path, ckpt: dict[str, Any]) -> TrainResult:
+    """`--resume` of a run whose training is complete: nothing changes if its evaluation is
+    there; a run killed during the final evaluation is evaluated from its saved policy."""
+    from marlmerge.learners.baselines_rl import load_policy
+
+    done = cfg.eval_episodes == 0 or (out / "evaluation.json").is_file()
+    evaluation = None
+    if done and cfg.eval_episodes > 0:
+        evaluation = json.loads((out / "evaluation.json").read_text())
+    elif not done:
+        evaluation = _evaluate_and_plot(cfg, out, load_policy(out / "policy.pt"))
+    return TrainResult(
+        out, ckpt["sim_steps"], ckpt["updates"], ckpt["egos"], 0.0, 0.0, 0.0, None, evaluation,
+        already_finished=done,
+    )  # fmt: skip
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write a small text file so that a kill leaves the old one or the new one, never half."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def _progress(total: int, initial: int, enabled: bool):

@@ -112,3 +112,54 @@ def test_cli_train_refuses_to_overwrite_and_resumes(tmp_path, capsys):
     assert "--resume" in capsys.readouterr().err
     assert main(["evaluate", str(out), "--episodes", "4", "--worlds", "4"]) == 0
     assert main(["plot", str(out)]) == 0
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def test_resuming_a_finished_run_changes_nothing_and_says_so(tmp_path, capsys):
+    out = tmp_path / "run"
+    sets = [
+        f"--set={k}={v!r}".replace("'", '"') if isinstance(v, str) else f"--set={k}={v}"
+        for k, v in {**TINY, "eval_episodes": 4}.items()
+    ]
+    assert main(["train", "--out", str(out), "--no-progress", *sets]) == 0
+    before = _snapshot(out)
+    capsys.readouterr()
+    assert main(["train", "--out", str(out), "--no-progress", "--resume", *sets]) == 0
+    assert "nothing to do, nothing changed" in capsys.readouterr().out
+    assert _snapshot(out) == before
+
+
+def test_a_run_killed_during_its_final_evaluation_is_evaluated_on_resume(tmp_path):
+    cfg = TrainConfig(**{**TINY, "eval_episodes": 4})
+    full = train(cfg, tmp_path, progress=False)
+    (tmp_path / "evaluation.json").unlink()  # as if killed while evaluating
+    policy = (tmp_path / "policy.pt").read_bytes()
+    resumed = train(cfg, tmp_path, resume=True, progress=False)
+    assert not resumed.already_finished and resumed.sim_steps == full.sim_steps
+    assert json.dumps(resumed.evaluation) == json.dumps(full.evaluation)  # NaN-safe
+    assert (tmp_path / "policy.pt").read_bytes() == policy
+
+
+def test_resume_refuses_a_set_that_differs_from_the_checkpoint(tmp_path, capsys):
+    cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
+    train(cfg, tmp_path, progress=False, stop_after_sim_steps=2_048)
+    argv = ["train", "--out", str(tmp_path), "--resume", "--no-progress", "--set=lr=0.5"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--set lr=0.5 differs from the run being resumed" in err and "lr = 0.001" in err
+
+
+@pytest.mark.parametrize("damage", ["deleted", "cut"])
+def test_resume_refuses_missing_or_cut_logs_naming_the_file(tmp_path, damage):
+    cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
+    train(cfg, tmp_path, progress=False, stop_after_sim_steps=4_096)
+    log = tmp_path / "egos.csv"
+    if damage == "deleted":
+        log.unlink()
+    else:
+        log.write_text("\n".join(log.read_text().splitlines()[:2]) + "\n")
+    with pytest.raises(ValueError, match=r"egos\.csv: "):
+        train(cfg, tmp_path, resume=True, progress=False)
