@@ -451,6 +451,7 @@ def train(
         )
         policy = NoisyGreedyPolicy(net, exploration, noise_gen)
     else:  # networks seeded from cfg.seed, target smoothing (td3) from cfg.seed + 3
+        net = None  # the learner owns its networks
         learner = make_learner(cfg, lo, hi)
         policy = LearnerPolicy(learner, noise_gen)
 
