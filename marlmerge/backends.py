@@ -10,7 +10,9 @@ seeds, so every backend gives the same answer.
 - `serial`: in this process.
 - `process` (default): a pool of `workers` processes (default: every core), each pinned to one
   thread (torch, Numba, BLAS). A worker that dies takes its pool with it; the pool is rebuilt
-  and the unfinished tasks are run again, each at most `max_retries` more times.
+  and the unfinished tasks are run again, each at most `max_retries` more times. Workers are
+  forked where that is safe (`start_method`), so they start with this process's imports instead
+  of importing torch and the kernels again (about 3 s each); else they are spawned.
 - `ray`: Ray tasks of one CPU each (`pip install ".[ray]"`), retried by Ray up to `max_retries`
   times when a worker dies; `address` joins a running cluster (`ray start --head`, then
   `address="auto"` or `"ray://host:10001"`), else a local one is started with `workers` CPUs.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -45,8 +48,27 @@ def _call(fn: Callable[[T], R], task: T) -> R:
     _pin_threads()
     import torch
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(1)  # one thread: torch then never enters an OpenMP region
+    if "numba.np.ufunc.parallel" in sys.modules:  # forked: Numba read its thread count already
+        import numba
+
+        numba.set_num_threads(1)
     return fn(task)
+
+
+def start_method() -> str:
+    """How worker processes start: `fork` on Linux while this process has not started Numba's
+    threading layer (a forked OpenMP runtime that was running can hang in the child; torch
+    runs single-threaded in a worker), `spawn` otherwise."""
+    if not sys.platform.startswith("linux"):
+        return "spawn"
+    import numba
+
+    try:
+        numba.threading_layer()  # raises until a parallel kernel has run in this process
+    except ValueError:
+        return "fork"
+    return "spawn"
 
 
 def check_backend(backend: str, workers: int | None = None) -> None:
@@ -96,7 +118,7 @@ def _serial(fn, tasks, done, workers, address, max_retries) -> None:  # noqa: AN
 def _processes(fn, tasks, done, workers, address, max_retries) -> None:  # noqa: ANN001
     pending = set(range(len(tasks)))
     tries = dict.fromkeys(pending, 0)
-    ctx = multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context(start_method())
     while pending:
         with ProcessPoolExecutor(
             max_workers=min(workers, len(pending)), mp_context=ctx, initializer=_pin_threads

@@ -46,10 +46,30 @@ def serial_csv(tmp_path_factory):
     return (out / "episodes.csv").read_bytes()
 
 
-def test_process_backend_gives_the_serial_csv_byte_for_byte(tmp_path, serial_csv):
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_process_backend_gives_the_serial_csv_byte_for_byte(
+    tmp_path, serial_csv, method, monkeypatch
+):
+    import marlmerge.backends as backends
+
+    monkeypatch.setattr(backends, "start_method", lambda: method)  # forked or spawned workers
     res = _grid(tmp_path, "process", workers=2)
     assert res.backend == "process" and res.cells_run == 4
     assert (tmp_path / "episodes.csv").read_bytes() == serial_csv
+
+
+def test_workers_are_forked_only_before_a_parallel_kernel_ran(tmp_path):
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np; from marlmerge.backends import start_method; "
+        "from marlmerge import ScenarioConfig, TrafficCore; a = start_method(); "
+        "c = TrafficCore(ScenarioConfig(), batch_size=128, seed=0); c.rollout(np.zeros(128)); "
+        "print(a, start_method())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == (["fork", "spawn"] if sys.platform == "linux" else ["spawn"] * 2)
 
 
 def test_ray_backend_gives_the_serial_csv_byte_for_byte(tmp_path, serial_csv):
