@@ -12,7 +12,7 @@ from marlmerge.sim import Profile, TrafficCore
 
 register()  # gymnasium.make("marlmerge/RampMerge-v1")
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 __all__ = [
     "ENV_ID",
