@@ -25,7 +25,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -270,11 +270,19 @@ EGO_FIELDS = ("ego", "sim_step", "world", "outcome", "time_s", "total_reward", *
 class CsvLog:
     """Append-only CSV that can be cut back to a checkpoint's row count on resume."""
 
-    def __init__(self, path: Path, fields: tuple[str, ...], keep_rows: int | None):
+    def __init__(
+        self,
+        path: Path,
+        fields: tuple[str, ...],
+        keep_rows: int | None,
+        on_row: Callable[[list[Any]], None] | None = None,
+    ):
         """A new log, or (`keep_rows` given: a resumed run) the log cut back to its first
-        `keep_rows` rows, rewritten atomically. A resumed run's log must hold those rows."""
+        `keep_rows` rows, rewritten atomically. A resumed run's log must hold those rows.
+        `on_row` sees every row written from now on (TensorBoard)."""
         self.path = path
         self.fields = fields
+        self.on_row = on_row
         rows: list[list[str]] = []
         if keep_rows is not None:
             rows = _read_rows(path, fields)
@@ -297,6 +305,8 @@ class CsvLog:
     def write(self, row: list[Any]) -> None:
         self.writer.writerow(row)
         self.rows += 1
+        if self.on_row is not None:
+            self.on_row(row)
 
     def flush(self) -> None:
         self.fh.flush()
@@ -495,14 +505,16 @@ def train(
         policy.sim_step = sim_steps
 
     # ---- logs (cut back to the checkpoint on resume, so the curves continue without overlap)
-    loss_log = CsvLog(out / "loss.csv", LOSS_FIELDS, ckpt["loss_rows"] if ckpt else None)
-    ego_log = CsvLog(out / "egos.csv", EGO_FIELDS, ckpt["ego_rows"] if ckpt else None)
+    tb = _tensorboard(out)
+    loss_log = CsvLog(
+        out / "loss.csv", LOSS_FIELDS, ckpt["loss_rows"] if ckpt else None, _tb_loss(tb)
+    )
+    ego_log = CsvLog(out / "egos.csv", EGO_FIELDS, ckpt["ego_rows"] if ckpt else None, _tb_ego(tb))
     tracker = EgoTracker(cfg.num_worlds, k * scen.sim.dt_s)
     if ckpt is not None:
         tracker.sums[:] = ckpt["tracker_sums"]
         tracker.steps[:] = ckpt["tracker_steps"]
         tracker.egos = ckpt["egos"]
-    tb = _tensorboard(out)
 
     frames_per_batch = cfg.num_worlds * cfg.env_steps_per_batch
     remaining_frames = math.ceil((cfg.total_sim_steps - sim_steps) / k)
@@ -622,9 +634,6 @@ def train(
                     success=f"{np.mean([r['outcome'] == 'success' for r in last]):.2f}",
                     reward=f"{np.mean([r['total_reward'] for r in last]):.1f}",
                 )
-        if tb is not None and recent:
-            for r in recent:
-                tb.add_scalar("charts/total_reward", r["total_reward"], r["ego"])
         recent = recent[-200:]
         if sim_steps >= cfg.total_sim_steps:  # the policy first: a finished checkpoint has one
             save_policy(out / "policy.pt", cfg, scen, net, learner)
@@ -641,6 +650,8 @@ def train(
         bar.close()
     loss_log.close()
     ego_log.close()
+    if tb is not None:
+        tb.close()
     wall = time.perf_counter() - t_start
     finished = sim_steps >= cfg.total_sim_steps
 
@@ -744,6 +755,30 @@ def _progress(total: int, initial: int, enabled: bool):
         desc="train",
         file=sys.stderr,
     )
+
+
+def _tb_loss(tb) -> Callable[[list[Any]], None] | None:
+    """TensorBoard `losses/td_loss` at each logged update (each point once)."""
+    if tb is None:
+        return None
+    return lambda row: tb.add_scalar("losses/td_loss", float(row[2]), int(row[0]))
+
+
+def _tb_ego(tb) -> Callable[[list[Any]], None] | None:
+    """TensorBoard `charts/total_reward`, `charts/<term>` and `charts/success` per ego, x = the
+    ego's number (as in the paper's Fig. 4; each ego once)."""
+    if tb is None:
+        return None
+
+    def write(row: list[Any]) -> None:
+        values = dict(zip(EGO_FIELDS, row, strict=True))
+        step = int(values["ego"])
+        tb.add_scalar("charts/total_reward", float(values["total_reward"]), step)
+        tb.add_scalar("charts/success", float(values["outcome"] == "success"), step)
+        for term in EGO_TERMS:
+            tb.add_scalar(f"charts/{term}", float(values[term]), step)
+
+    return write
 
 
 def _tensorboard(out: Path):

@@ -163,3 +163,48 @@ def test_resume_refuses_missing_or_cut_logs_naming_the_file(tmp_path, damage):
         log.write_text("\n".join(log.read_text().splitlines()[:2]) + "\n")
     with pytest.raises(ValueError, match=r"egos\.csv: "):
         train(cfg, tmp_path, resume=True, progress=False)
+
+
+class _Board:
+    """Stands in for TensorBoard's SummaryWriter: records (tag, value, step)."""
+
+    def __init__(self):
+        self.points = []
+
+    def add_scalar(self, tag, value, step):
+        self.points.append((tag, value, step))
+
+    def close(self):
+        pass
+
+
+def test_tensorboard_gets_each_loss_and_each_ego_once(tmp_path, monkeypatch):
+    import marlmerge.train as training
+
+    board = _Board()
+    monkeypatch.setattr(training, "_tensorboard", lambda out: board)
+    result = train(TrainConfig(**{**TINY, "eval_episodes": 0}), tmp_path, progress=False)
+    by_tag = {}
+    for tag, value, step in board.points:
+        by_tag.setdefault(tag, []).append((step, value))
+    losses = [(int(r[0]), float(r[2])) for r in _rows(tmp_path / "loss.csv")[1:]]
+    assert by_tag["losses/td_loss"] == losses
+    egos = _rows(tmp_path / "egos.csv")[1:]
+    assert [s for s, _ in by_tag["charts/total_reward"]] == list(range(result.egos))
+    assert [v for _, v in by_tag["charts/total_reward"]] == [float(r[5]) for r in egos]
+    assert [v for _, v in by_tag["charts/success"]] == [float(r[3] == "success") for r in egos]
+    assert {t for t in by_tag if t.startswith("charts/")} >= {"charts/gap_front", "charts/speed"}
+
+
+def test_a_slow_first_call_says_it_is_compiling(capsys):
+    import time
+
+    from marlmerge.learners.quadq import notice_if_slow
+
+    with notice_if_slow("compiling...", after_s=0.05):
+        time.sleep(0.3)
+    with notice_if_slow("never shown", after_s=0.5):
+        pass
+    time.sleep(0.6)
+    err = capsys.readouterr().err
+    assert "compiling..." in err and "never shown" not in err

@@ -48,6 +48,7 @@ from marlmerge.learners.quadq import (
     GaussianExploration,
     PeriodicHardUpdate,
     QuadraticQNet,
+    notice_if_slow,
     unpack_rows,
 )
 
@@ -321,7 +322,7 @@ class BaselineLearner:
         if name not in self._uncompiled_calls:
             return fn(*args)
         t0 = time.perf_counter()
-        with _quiet_tracing():
+        with _quiet_tracing(), notice_if_slow():
             out = fn(*args)
         self.compile_time_s = (self.compile_time_s or 0.0) + time.perf_counter() - t0
         self._uncompiled_calls.discard(name)

@@ -27,10 +27,13 @@ All randomness comes from caller-supplied ``torch.Generator`` objects.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
+import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -640,6 +643,25 @@ def _fast_chunk(
     return torch.stack(losses)
 
 
+COMPILE_NOTICE = (
+    "marlmerge: compiling the update step with torch.compile (first run: up to a minute; "
+    "later runs load it from the cache)..."
+)
+
+
+@contextlib.contextmanager
+def notice_if_slow(message: str = COMPILE_NOTICE, after_s: float = 2.0) -> Iterator[None]:
+    """Print `message` to stderr if the block is still running after `after_s` seconds (a first
+    call that compiles), so a progress bar that stands still is explained."""
+    timer = threading.Timer(after_s, lambda: print(message, file=sys.stderr, flush=True))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
 class FastQuadQUpdater:
     """Engineered update path for :class:`QuadraticQLoss` with a :class:`QuadraticQNet`.
 
@@ -779,9 +801,10 @@ class FastQuadQUpdater:
         scalars = self._adam_scalars()
         if self.compile_time_s is None and self._fn is not self._eager_chunk:
             t0 = time.perf_counter()
-            losses = self._fn(
-                self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
-            )
+            with notice_if_slow():
+                losses = self._fn(
+                    self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
+                )
             self.compile_time_s = time.perf_counter() - t0
         else:
             losses = self._fn(
