@@ -398,9 +398,15 @@ def frozen_net(
     return net
 
 
-def snapshot_policy(state: dict[str, Tensor], hidden: int, scen: ScenarioConfig) -> HighwayPolicy:
-    """The greedy highway policy of a pool snapshot (weights of the learned adjustment)."""
-    net = frozen_net(state, len(HIGHWAY_FEATURES), hidden, OFFSET_BOUNDS_MPS2)
+def snapshot_policy(
+    state: dict[str, Tensor],
+    hidden: int,
+    scen: ScenarioConfig,
+    bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
+) -> HighwayPolicy:
+    """The greedy highway policy of a pool snapshot: weights of the learned adjustment, whose
+    network squashes its greedy action into `bounds` (m/s^2)."""
+    net = frozen_net(state, len(HIGHWAY_FEATURES), hidden, bounds)
     return ResidualHighwayPolicy(net.greedy, scen)
 
 
@@ -455,13 +461,20 @@ def save_ego_policy(path: Path, net: QuadraticQNet, cfg: CoTrainConfig, scen: Sc
 
 
 def save_highway_policy(
-    path: Path, state: dict[str, Tensor], cfg: CoTrainConfig, scen: ScenarioConfig
+    path: Path,
+    state: dict[str, Tensor],
+    cfg: CoTrainConfig,
+    scen: ScenarioConfig,
+    bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
 ) -> None:
+    """A highway group's policy: the adjustment network's weights and the `bounds` its greedy
+    action is squashed into (stored, so the file reloads as it was trained)."""
     files.save(
         {
             "group": GROUP,
             "profile": cfg.profile,
             "hidden": cfg.hidden,
+            "action_bounds": [float(bounds[0]), float(bounds[1])],
             "config": to_dict(cfg),
             "scenario": to_dict(scen),
             "net": state,
@@ -483,7 +496,8 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
         raise ValueError(f"no saved highway policy at {path}")
     saved = files.load(path, "highway policy")
     scen = from_dict(ScenarioConfig, saved["scenario"])
-    return snapshot_policy(saved["net"], saved["hidden"], scen)
+    bounds = saved.get("action_bounds", OFFSET_BOUNDS_MPS2)  # files of 0.2: trained with these
+    return snapshot_policy(saved["net"], saved["hidden"], scen, (bounds[0], bounds[1]))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -111,9 +111,10 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
     import torch
 
     from marlmerge.config import ScenarioConfig
-    from marlmerge.cotrain import CoTrainConfig, save_highway_policy
+    from marlmerge.cotrain import CoTrainConfig, load_highway_policy, save_highway_policy
     from marlmerge.grid import parse_condition
     from marlmerge.learners.quadq import QuadraticQNet
+    from marlmerge.spec.observation import HIGHWAY_FEATURES
 
     # a highway policy that brakes at every step: greedy B(s) pinned to the lower bound
     net = QuadraticQNet(12, 64, action_low=-4.5, action_high=2.5)
@@ -127,7 +128,14 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
             net.state_dict(),
             CoTrainConfig(ego_init="x", ego_pretrain_sim_steps=0),
             ScenarioConfig(),
+            bounds=(-4.5, 2.5),
         )
+    # the premise: reloaded with its own bounds, the learned adjustment is -4.5 m/s^2, so the
+    # agent (IDM, at most a = 1.5 m/s^2, plus the adjustment) brakes at every step
+    obs = torch.rand(3, 4, len(HIGHWAY_FEATURES), generator=torch.Generator().manual_seed(0))
+    braking = load_highway_policy(tmp_path / "adv_s0")(obs)
+    a_max = ScenarioConfig().driver.accel_mps2
+    assert (braking <= a_max - 4.5 + 1e-4).all()
     cond = parse_condition(f"braking=grid_light_cooperative+highway:{tmp_path}/adv_s*")
     assert cond.label == "braking" and len(cond.highway) == 2
     with pytest.raises(ValueError, match="no highway_policy.pt"):

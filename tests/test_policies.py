@@ -5,6 +5,7 @@ import numpy as np
 import marlmerge
 from marlmerge.pettingzoo_env import EGO_AGENT
 from marlmerge.policies import IdmEgoPolicy, ScriptedHighwayPolicy
+from marlmerge.sim import OUTCOME_NONE
 from marlmerge.spec.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE
 
 
@@ -71,4 +72,4 @@ def test_scripted_policies_drive_highway_agents_without_mainline_collisions():
         outcomes.append(info[EGO_AGENT]["outcome"])
         obs, infos = env.reset()
     assert env.core.state.background_collisions.sum() == 0
-    assert len(outcomes) == 6
+    assert all(o != OUTCOME_NONE for o in outcomes)  # every episode reached its end

@@ -2,30 +2,14 @@
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-import pathlib
-import sys
 import warnings
 
 import pytest
 import torch
 from tensordict import TensorDict
 
+import marlmerge.learners.quadq as qq
 
-def _load_quadq():
-    try:
-        return importlib.import_module("marlmerge.learners.quadq")
-    except Exception:  # the package __init__ may be mid-edit: load the file on its own
-        path = pathlib.Path(__file__).resolve().parents[1] / "marlmerge" / "learners" / "quadq.py"
-        spec = importlib.util.spec_from_file_location("_quadq_standalone", path)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = mod  # dataclasses look their module up here
-        spec.loader.exec_module(mod)
-        return mod
-
-
-qq = _load_quadq()
 LOW, HIGH = qq.DEFAULT_ACTION_BOUNDS
 OBS_DIM = 7
 

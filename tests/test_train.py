@@ -208,3 +208,33 @@ def test_a_slow_first_call_says_it_is_compiling(capsys):
     time.sleep(0.6)
     err = capsys.readouterr().err
     assert "compiling..." in err and "never shown" not in err
+
+
+def test_the_paper_learner_learns_to_beat_holding_its_speed(tmp_path):
+    """A small budget (200 k simulator steps, an eighth of the paper's) in light adversarial
+    traffic: the greedy policy must succeed clearly more often than holding speed on the same
+    held-out roads (seed 0 measured 93 % vs 84 %)."""
+    import torch
+
+    from marlmerge.evaluate import evaluate_policy
+    from marlmerge.pettingzoo_env import resolve_config
+
+    cfg = TrainConfig(
+        name="learn",
+        scenario="grid_light_adversarial",
+        total_sim_steps=200_000,
+        num_worlds=16,
+        learning_starts=500,
+        update_path="fast",
+        eval_episodes=100,
+        checkpoint_every_sim_steps=1_000_000,
+    )
+    learned = train(cfg, tmp_path, progress=False).evaluation
+    hold = evaluate_policy(
+        lambda obs: torch.zeros(obs.shape[0], 1),
+        resolve_config(cfg.scenario),
+        cfg.eval_episodes,
+        cfg.eval_seed,
+        cfg.eval_worlds,
+    )
+    assert learned["success_rate"] >= hold["success_rate"] + 0.05
