@@ -298,7 +298,6 @@ def sweep_cmd(args: argparse.Namespace) -> int:
         seeds,
         out,
         _parse_sets(args.set),
-        args.kind,
         args.backend,
         args.workers,
         args.address,
@@ -471,9 +470,6 @@ def build_parser() -> argparse.ArgumentParser:
     w = sub.add_parser("sweep", help="train a preset over many seeds, summarise across seeds")
     w.add_argument("preset", help="training preset in trainers/ (or a .toml path)")
     w.add_argument("--seeds", default="0-4", help="e.g. 0-9, 0,2,5 or 0-3,10-12 (default 0-4)")
-    w.add_argument(
-        "--kind", choices=("train", "cotrain"), default="train", help="the preset's schema"
-    )
     w.add_argument("--out", default=None, help="sweep folder (default runs/sweep_<preset>)")
     w.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field"

@@ -49,7 +49,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -111,6 +111,9 @@ COTRAIN_RULES = {
 @dataclass(frozen=True)
 class CoTrainConfig:
     """One co-training run. Learner settings follow the paper's recipe for both groups."""
+
+    KIND: ClassVar[str] = "cotrain"
+    """The `kind` a preset of this schema names."""
 
     name: str = "cotrain"
     """Run name; outputs go to `runs/<name>` unless `--out` says otherwise."""

@@ -25,7 +25,6 @@ import numpy as np
 
 from marlmerge.backends import check_backend, run_tasks
 
-KINDS = ("train", "cotrain")
 MEASURES = (
     ("success_rate", True),
     ("collision_rate", False),
@@ -162,17 +161,18 @@ def sweep(
     seeds: list[int],
     out_dir: str | Path,
     overrides: dict[str, Any] | None = None,
-    kind: str = "train",
     backend: str = "process",
     workers: int | None = None,
     address: str | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Train `preset` once per seed on `backend` and summarise; see the module docstring."""
+    """Train `preset` once per seed on `backend` and summarise; see the module docstring. The
+    preset's `kind` says whether it is a `train` or a `cotrain` recipe."""
     import time
 
-    if kind not in KINDS:
-        raise ValueError(f"--kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    from marlmerge.train import preset_kind
+
+    kind = preset_kind(preset)
     check_backend(backend, workers)
     overrides = dict(overrides or {})
     if "seed" in overrides:

@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch
@@ -82,9 +82,16 @@ TRAIN_RULES = {
 """Signs and ranges of the training numbers (`marlmerge.config.check_values`)."""
 
 
+PRESET_KINDS = ("train", "cotrain")
+"""What a training preset's `kind` key may say: the schema (and command) it belongs to."""
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """One training run. Defaults are the paper's recipe (Sec. IV.B, Table 1)."""
+
+    KIND: ClassVar[str] = "train"
+    """The `kind` a preset of this schema names."""
 
     name: str = "paper"
     """Run name; outputs go to `runs/<name>` unless `--out` says otherwise."""
@@ -217,9 +224,8 @@ def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:
 C = TypeVar("C")
 
 
-def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
-    """A preset of the dataclass `cls`: a TOML path, or a name in `trainers/`; loaded strictly
-    (unknown keys raise), `name` defaulting to the file's stem, with field overrides."""
+def preset_path(path: str | Path) -> Path:
+    """A training preset's file: a TOML path, or a name in `trainers/`."""
     path = Path(path)
     if not path.exists():
         known = sorted(p.stem for p in preset_dir("trainers").glob("*.toml"))
@@ -227,7 +233,33 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
         if not candidate.exists():
             raise ValueError(f"unknown training preset {str(path)!r} (known: {', '.join(known)})")
         path = candidate
+    return path
+
+
+def preset_kind(path: str | Path) -> str:
+    """The schema a training preset names with its `kind` key: "train" or "cotrain"."""
+    path = preset_path(path)
+    kind = read_toml(path).get("kind")
+    if kind not in PRESET_KINDS:
+        raise ValueError(
+            f"{path}: kind must name the preset's schema, one of {', '.join(PRESET_KINDS)} "
+            f"(`kind = \"train\"` for `marlmerge train`), got {kind!r}"
+        )
+    return kind
+
+
+def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
+    """A preset of the dataclass `cls` (its `KIND` must be the preset's `kind`): a TOML path, or
+    a name in `trainers/`; loaded strictly (unknown keys raise), `name` defaulting to the file's
+    stem, with field overrides."""
+    path = preset_path(path)
+    kind = preset_kind(path)
+    if kind != cls.KIND:  # type: ignore[attr-defined]
+        raise ValueError(
+            f"{path} is a {kind!r} preset: run it with `marlmerge {kind} {path.stem}`"
+        )
     data = read_toml(path)
+    del data["kind"]
     data.setdefault("name", path.stem)
     data.update(overrides)
     try:

@@ -92,8 +92,11 @@ def test_presets_load_strictly(tmp_path):
     assert load_train_config("paper").total_sim_steps == 1_600_000
     assert load_train_config("quick").total_sim_steps < 1_600_000
     bad = tmp_path / "bad.toml"
-    bad.write_text("total_steps = 5\n")
+    bad.write_text('kind = "train"\ntotal_steps = 5\n')
     with pytest.raises(ValueError, match="'total_steps'"):
+        load_train_config(bad)
+    bad.write_text("total_sim_steps = 5\n")
+    with pytest.raises(ValueError, match=r"bad\.toml: kind must name the preset's schema"):
         load_train_config(bad)
     with pytest.raises(ValueError, match="update_path"):
         TrainConfig(update_path="jit")
@@ -238,3 +241,11 @@ def test_the_paper_learner_learns_to_beat_holding_its_speed(tmp_path):
         cfg.eval_worlds,
     )
     assert learned["success_rate"] >= hold["success_rate"] + 0.05
+
+
+def test_a_preset_of_the_other_kind_names_its_command(capsys):
+    assert main(["train", "cotrain"]) == 2
+    err = capsys.readouterr().err
+    assert "is a 'cotrain' preset: run it with `marlmerge cotrain cotrain`" in err
+    assert main(["cotrain", "paper"]) == 2
+    assert "is a 'train' preset: run it with `marlmerge train paper`" in capsys.readouterr().err
