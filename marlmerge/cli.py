@@ -231,11 +231,15 @@ def _print_evaluation(ev: dict) -> None:
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
     from marlmerge.evaluate import evaluate_policy
-    from marlmerge.learners.baselines_rl import load_policy, load_scenario_of
+    from marlmerge.learners.baselines_rl import load_scenario_of
     from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.registry import RULE_POLICIES, policy_from_spec
 
-    policy = load_policy(args.policy)
-    scen = resolve_config(args.scenario) if args.scenario else load_scenario_of(args.policy)
+    if args.scenario or args.policy in RULE_POLICIES:
+        scen = resolve_config(args.scenario or "default")
+    else:
+        scen = load_scenario_of(args.policy)  # the scenario it was trained on
+    policy = policy_from_spec(args.policy, scen)
     highway = None
     if args.highway:
         from marlmerge.cotrain import load_highway_policy
@@ -399,7 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=train_cmd)
 
     e = sub.add_parser("evaluate", help="evaluate a saved policy greedily")
-    e.add_argument("policy", help="a run folder or a policy.pt file")
+    e.add_argument("policy", help="hold, idm, gap, or a run folder / policy.pt file")
     e.add_argument("--episodes", type=_at_least(1), default=200)
     e.add_argument("--seed", type=_at_least(0), default=1_000_000, help="first held-out road seed")
     e.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")

@@ -60,7 +60,6 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge import files
 from marlmerge.config import ScenarioConfig, check_values, from_dict, to_dict
-from marlmerge.learners.baselines_rl import _read_policy_file
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
     GaussianExploration,
@@ -70,6 +69,7 @@ from marlmerge.learners.quadq import (
 )
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
 from marlmerge.policies import ScriptedHighwayPolicy
+from marlmerge.policy_file import read_policy, write_policy
 from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
 from marlmerge.spec.reward import INTERACTION_TERMS, LEARNED_HIGHWAY_TERMS
@@ -452,14 +452,14 @@ class JointPolicy:
 
 def save_ego_policy(path: Path, net: QuadraticQNet, cfg: CoTrainConfig, scen: ScenarioConfig):
     """The ego in the `policy.pt` format of `train.py` (readable by `load_policy`, the grid)."""
-    files.save(
-        {
-            "algorithm": "quadq",
-            "config": {**to_dict(cfg), "hidden": cfg.hidden},
-            "scenario": to_dict(scen),
-            "net": net.state_dict(),
-        },
+    write_policy(
         path,
+        "ego",
+        "quadq",
+        (net.action_low, net.action_high),
+        {"net": net.state_dict(), "hidden": cfg.hidden},
+        to_dict(cfg),
+        to_dict(scen),
     )
 
 
@@ -472,18 +472,8 @@ def save_highway_policy(
 ) -> None:
     """A highway group's policy: the adjustment network's weights and the `bounds` its greedy
     action is squashed into (stored, so the file reloads as it was trained)."""
-    files.save(
-        {
-            "group": GROUP,
-            "profile": cfg.profile,
-            "hidden": cfg.hidden,
-            "action_bounds": [float(bounds[0]), float(bounds[1])],
-            "config": to_dict(cfg),
-            "scenario": to_dict(scen),
-            "net": state,
-        },
-        path,
-    )
+    state = {"net": state, "hidden": cfg.hidden, "profile": cfg.profile}
+    write_policy(path, "highway", "quadq-residual", bounds, state, to_dict(cfg), to_dict(scen))
 
 
 HighwayPolicy = Callable[[Tensor], Tensor]
@@ -492,15 +482,11 @@ HighwayPolicy = Callable[[Tensor], Tensor]
 
 def load_highway_policy(path: str | Path) -> HighwayPolicy:
     """The greedy shared policy of a saved highway group (`highway_policy.pt` or its folder)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "highway_policy.pt"
-    if not path.exists():
-        raise ValueError(f"no saved highway policy at {path}")
-    saved = files.load(path, "highway policy")
+    saved = read_policy(path, "highway")
     scen = from_dict(ScenarioConfig, saved["scenario"])
-    bounds = saved.get("action_bounds", OFFSET_BOUNDS_MPS2)  # files of 0.2: trained with these
-    return snapshot_policy(saved["net"], saved["hidden"], scen, (bounds[0], bounds[1]))
+    low, high = saved["action_bounds_mps2"]
+    state = saved["policy_state"]
+    return snapshot_policy(state["net"], state["hidden"], scen, (low, high))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -576,12 +562,18 @@ def cotrain(
     hw_bounds = OFFSET_BOUNDS_MPS2  # the highway network learns an adjustment to IDM
     ego_init = None
     if cfg.ego_init:
-        saved = _read_policy_file(cfg.ego_init)
-        if saved.get("algorithm", "quadq") != "quadq":
+        saved = read_policy(cfg.ego_init, "ego")
+        if saved["algorithm"] != "quadq":
             raise ValueError(f"ego_init {cfg.ego_init!r} is not a quadratic-Q policy")
-        if saved["config"]["hidden"] != cfg.hidden:
-            raise ValueError(f"ego_init {cfg.ego_init!r} has hidden={saved['config']['hidden']}")
-        ego_init = saved["net"]
+        hidden = saved["policy_state"].get("hidden", saved["config"].get("hidden"))
+        if hidden != cfg.hidden:
+            raise ValueError(f"ego_init {cfg.ego_init!r} has hidden={hidden}, not {cfg.hidden}")
+        if tuple(saved["action_bounds_mps2"]) != tuple(ego_bounds):
+            raise ValueError(
+                f"ego_init {cfg.ego_init!r} acts in {saved['action_bounds_mps2']} m/s^2, the "
+                f"scenario's ego in {ego_bounds}"
+            )
+        ego_init = saved["policy_state"]["net"]
     ego = GroupLearner(cfg, len(EGO_FEATURES), ego_bounds, cfg.seed * 1000 + 10, ego_init)
     hw = GroupLearner(cfg, len(HIGHWAY_FEATURES), hw_bounds, cfg.seed * 1000 + 20)
     pool: list[dict[str, Tensor]] = []

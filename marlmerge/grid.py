@@ -35,62 +35,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from marlmerge.backends import check_backend, run_tasks
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluate import EgoPolicy, rollout_first_egos
+from marlmerge.evaluate import rollout_first_egos
 from marlmerge.metrics import aggregate, episode_metrics
 from marlmerge.pettingzoo_env import find_preset, resolve_config
-
-RULE_POLICIES = ("hold", "idm", "gap")
-LEARNED_KINDS = ("quadq", "dqn", "td3")
-
-
-@dataclass(frozen=True)
-class PolicySpec:
-    """A policy of the grid: a rule, or a learned kind with one run folder per training seed."""
-
-    name: str
-    kind: str
-    runs: tuple[str, ...] = ()
-
-
-def parse_policy(spec: str) -> PolicySpec:
-    """`hold`, `idm`, `gap`, or `[label=]KIND:GLOB` with KIND quadq, dqn or td3 (GLOB matches run
-    folders with a `policy.pt`, one per training seed)."""
-    label, _, body = spec.rpartition("=")
-    kind, _, pattern = body.partition(":")
-    if kind in RULE_POLICIES and not pattern:
-        return PolicySpec(label or kind, kind)
-    if kind in LEARNED_KINDS and pattern:
-        found = [m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")]
-        runs = tuple(found) or (pattern,)
-        missing = [r for r in runs if not (r.endswith(".pt") or (Path(r) / "policy.pt").exists())]
-        if missing:
-            raise ValueError(f"policy {spec!r}: no policy.pt in {missing[0]!r}")
-        return PolicySpec(label or kind, kind, runs)
-    raise ValueError(
-        f"unknown policy {spec!r} (use one of {', '.join(RULE_POLICIES)}, or "
-        f"[label=]{'|'.join(LEARNED_KINDS)}:RUN_GLOB)"
-    )
-
-
-def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
-    """The obs [B, 7] -> action [B, 1] function of one policy (and one training run)."""
-    if spec.kind in LEARNED_KINDS:
-        from marlmerge.learners.baselines_rl import load_policy
-
-        return load_policy(run)
-    from marlmerge.baselines import GapAcceptancePolicy
-    from marlmerge.policies import IdmEgoPolicy, constant_speed_action
-
-    rule = {
-        "hold": constant_speed_action,
-        "idm": IdmEgoPolicy(scenario),
-        "gap": GapAcceptancePolicy(scenario),
-    }[spec.kind]
-    return lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)
+from marlmerge.registry import (  # noqa: F401 - the grid's policies, re-exported
+    LEARNED_KINDS,
+    RULE_POLICIES,
+    PolicySpec,
+    make_policy,
+    parse_policy,
+)
 
 
 def condition_label(cfg: ScenarioConfig) -> str:

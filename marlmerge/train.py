@@ -49,8 +49,10 @@ from marlmerge.learners.quadq import (
     unpack_rows,
 )
 from marlmerge.pettingzoo_env import resolve_config
+from marlmerge.policy_file import write_policy
 from marlmerge.presets import preset_dir
 from marlmerge.sim import OUTCOME_NAMES
+from marlmerge.spec.observation import EGO_FEATURES
 from marlmerge.spec.reward import EGO_TERMS
 
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
@@ -243,7 +245,7 @@ def preset_kind(path: str | Path) -> str:
     if kind not in PRESET_KINDS:
         raise ValueError(
             f"{path}: kind must name the preset's schema, one of {', '.join(PRESET_KINDS)} "
-            f"(`kind = \"train\"` for `marlmerge train`), got {kind!r}"
+            f'(`kind = "train"` for `marlmerge train`), got {kind!r}'
         )
     return kind
 
@@ -255,9 +257,7 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
     path = preset_path(path)
     kind = preset_kind(path)
     if kind != cls.KIND:  # type: ignore[attr-defined]
-        raise ValueError(
-            f"{path} is a {kind!r} preset: run it with `marlmerge {kind} {path.stem}`"
-        )
+        raise ValueError(f"{path} is a {kind!r} preset: run it with `marlmerge {kind} {path.stem}`")
     data = read_toml(path)
     del data["kind"]
     data.setdefault("name", path.stem)
@@ -482,7 +482,9 @@ def train(
     learner = None  # the peer learner (dqn, td3); None for quadq
     if cfg.algorithm == "quadq":
         init_gen = torch.Generator().manual_seed(cfg.seed)
-        net = QuadraticQNet(7, cfg.hidden, action_low=lo, action_high=hi, generator=init_gen)
+        net = QuadraticQNet(
+            len(EGO_FEATURES), cfg.hidden, action_low=lo, action_high=hi, generator=init_gen
+        )
         loss_module = QuadraticQLoss(net, gamma=cfg.gamma)
         exploration = GaussianExploration(
             cfg.sigma_start,
@@ -646,7 +648,7 @@ def train(
                 updates += fast.k
         else:
             for _ in range(owed):
-                td = unpack_rows(replay.sample(cfg.batch_size), 7)
+                td = unpack_rows(replay.sample(cfg.batch_size), len(EGO_FEATURES))
                 out_td = loss_module(td)
                 optimizer.zero_grad()
                 out_td["loss_value"].backward()
@@ -723,13 +725,17 @@ def train(
 
 
 def save_policy(path: Path, cfg: TrainConfig, scen, net, learner) -> None:
-    """policy.pt: everything `baselines_rl.load_policy` needs to rebuild the greedy policy."""
-    saved = {"algorithm": cfg.algorithm, "config": to_dict(cfg), "scenario": to_dict(scen)}
-    if learner is None:
-        saved["net"] = net.state_dict()
-    else:
-        saved.update(learner.policy_state())
-    files.save(saved, path)
+    """policy.pt (`marlmerge.policy_file`): what `load_policy` rebuilds the greedy policy from."""
+    state = {"net": net.state_dict(), "hidden": cfg.hidden} if learner is None else None
+    write_policy(
+        path,
+        "ego",
+        cfg.algorithm,
+        scen.ego.accel_bounds_mps2,
+        state if state is not None else learner.policy_state(),
+        to_dict(cfg),
+        to_dict(scen),
+    )
 
 
 def _evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:

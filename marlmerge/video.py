@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.registry import policy_from_spec
 from marlmerge.render import render_scene, write_video
 from marlmerge.sim import OUTCOME_NAMES, OUTCOME_NONE, TrafficCore
 
@@ -24,22 +25,6 @@ EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
 HighwayPolicy = Callable[[torch.Tensor], torch.Tensor]
 HOLD_LAST_S = 1.5
 """The last frame of an episode is held this long."""
-
-
-def policy_from_spec(spec: str, cfg: ScenarioConfig) -> EgoPolicy:
-    """`hold`, `idm`, `gap`, or a run folder / `policy.pt` of any learner."""
-    from marlmerge.grid import RULE_POLICIES, PolicySpec, make_policy
-
-    if spec in RULE_POLICIES:
-        return make_policy(PolicySpec(spec, spec), None, cfg)
-    path = Path(spec)
-    if not (path.suffix == ".pt" and path.exists()) and not (path / "policy.pt").exists():
-        raise ValueError(
-            f"policy {spec!r}: not one of {', '.join(RULE_POLICIES)} and no policy.pt there"
-        )
-    from marlmerge.learners.baselines_rl import load_policy
-
-    return load_policy(path)
 
 
 def _agents(roster) -> dict[str, int]:  # noqa: ANN001 - a Roster

@@ -95,8 +95,8 @@ def test_killed_run_resumes_bit_exact(tmp_path, algorithm):
     assert resumed.sim_steps == straight.sim_steps and resumed.updates == straight.updates
     assert _rows(tmp_path / "a" / "egos.csv") == _rows(tmp_path / "b" / "egos.csv")
     assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
-    wa = files.load(tmp_path / "a" / "policy.pt")["net"]
-    wb = files.load(tmp_path / "b" / "policy.pt")["net"]
+    wa = files.load(tmp_path / "a" / "policy.pt")["policy_state"]["net"]
+    wb = files.load(tmp_path / "b" / "policy.pt")["policy_state"]["net"]
     assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
     ca = files.load(tmp_path / "a" / "checkpoint.pt")["learner"]["loss"]
     cb = files.load(tmp_path / "b" / "checkpoint.pt")["learner"]["loss"]
@@ -194,7 +194,7 @@ def test_load_policy_reads_quadq_policies(tmp_path):
     policy = load_policy(tmp_path / "policy.pt")
     obs = torch.rand(10, 7, generator=torch.Generator().manual_seed(0))
     assert torch.equal(policy(obs), net.greedy(obs).detach())
-    with pytest.raises(ValueError, match="no saved policy"):
+    with pytest.raises(ValueError, match="no saved ego policy"):
         load_policy(tmp_path / "missing")
 
 

@@ -74,7 +74,8 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
     assert totals[best] == min(totals) and totals[best + 1 :].count(min(totals)) == 0
     chosen = files.load(tmp_path / "pool" / f"ego_{sel['chosen_phase_index']}.pt")
     saved = files.load(tmp_path / "policy.pt")
-    assert all(torch.equal(chosen["net"][k], saved["net"][k]) for k in saved["net"])
+    chosen, saved = chosen["policy_state"]["net"], saved["policy_state"]["net"]
+    assert all(torch.equal(chosen[k], saved[k]) for k in saved)
     # saved policies load through the common interfaces
     ego = load_policy(tmp_path)
     assert ego(torch.zeros(5, 7)).shape == (5, 1)
@@ -103,12 +104,12 @@ def test_a_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     assert ckpt["phase_index"] == 1 and ckpt["phase_done"] > 0  # inside the adversary phase
     assert not (cut / "policy.pt").exists()
     cotrain(cfg, cut, resume=True, progress=False)
-    a = files.load(full / "policy.pt")["net"]
-    b = files.load(cut / "policy.pt")["net"]
+    a = files.load(full / "policy.pt")["policy_state"]["net"]
+    b = files.load(cut / "policy.pt")["policy_state"]["net"]
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    ha = files.load(full / "highway_policy.pt")["net"]
-    hb = files.load(cut / "highway_policy.pt")["net"]
+    ha = files.load(full / "highway_policy.pt")["policy_state"]["net"]
+    hb = files.load(cut / "highway_policy.pt")["policy_state"]["net"]
     for k in ha:
         assert torch.equal(ha[k], hb[k]), k
     assert (full / "egos.csv").read_text() == (cut / "egos.csv").read_text()

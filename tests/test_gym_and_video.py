@@ -12,7 +12,8 @@ from pettingzoo.test import api_test, max_cycles_test, render_test, seed_test
 import marlmerge
 from marlmerge.config import ScenarioConfig
 from marlmerge.policies import ScriptedHighwayPolicy
-from marlmerge.video import policy_from_spec, record_episodes
+from marlmerge.registry import policy_from_spec
+from marlmerge.video import record_episodes
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # "human" windows without a display
 

@@ -74,8 +74,8 @@ def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
     assert resumed.sim_steps == straight.sim_steps and resumed.updates == straight.updates
     assert _rows(tmp_path / "a" / "egos.csv") == _rows(tmp_path / "b" / "egos.csv")
     assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
-    wa = files.load(tmp_path / "a" / "policy.pt")["net"]
-    wb = files.load(tmp_path / "b" / "policy.pt")["net"]
+    wa = files.load(tmp_path / "a" / "policy.pt")["policy_state"]["net"]
+    wb = files.load(tmp_path / "b" / "policy.pt")["policy_state"]["net"]
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 

@@ -42,7 +42,6 @@ from torchrl.data import Bounded, Categorical
 from torchrl.modules import MLP, Actor, QValueActor, ValueOperator
 from torchrl.objectives import DQNLoss, SoftUpdate, TD3Loss
 
-from marlmerge import files
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
     GaussianExploration,
@@ -51,6 +50,8 @@ from marlmerge.learners.quadq import (
     notice_if_slow,
     unpack_rows,
 )
+from marlmerge.policy_file import read_policy
+from marlmerge.spec.observation import EGO_FEATURES
 
 __all__ = [
     "ALGORITHMS",
@@ -76,7 +77,7 @@ __all__ = [
 ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
 """Learners selectable with ``TrainConfig.algorithm``."""
 
-OBS_DIM = 7
+OBS_DIM = len(EGO_FEATURES)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -693,14 +694,6 @@ class LearnerPolicy:
 # ----------------------------------------------------------------------------------------------
 
 
-def _read_policy_file(path: str | Path) -> dict:
-    """The contents of a `policy.pt` (or of the one in a run folder)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "policy.pt"
-    return files.load(path, "saved policy")
-
-
 def _scenario(saved: dict):
     from marlmerge.config import ScenarioConfig, from_dict
 
@@ -709,23 +702,23 @@ def _scenario(saved: dict):
 
 def load_scenario_of(path: str | Path):
     """The scenario a saved policy was trained on."""
-    return _scenario(_read_policy_file(path))
+    return _scenario(read_policy(path, "ego"))
 
 
 def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     """Greedy policy of a saved run, any algorithm: ``obs [B, 7] -> acceleration [B, 1]`` m/s^2.
 
-    ``path`` is a ``policy.pt`` or a run folder holding one. A ``policy.pt`` without an
-    ``"algorithm"`` entry is a quadratic-Q policy (the format written before the peers existed).
-    The returned function runs without gradients and leaves the global RNG untouched.
+    ``path`` is a ``policy.pt`` (`marlmerge.policy_file`) or a run folder holding one. The
+    returned function runs without gradients and leaves the global RNG untouched.
     """
-    saved = _read_policy_file(path)
-    algorithm = saved.get("algorithm", "quadq")
-    scen = _scenario(saved)
-    lo, hi = scen.ego.accel_bounds_mps2
+    saved = read_policy(path, "ego")
+    algorithm, state = saved["algorithm"], saved["policy_state"]
+    lo, hi = saved["action_bounds_mps2"]
+    obs_dim = saved["observation"]["size"]
     if algorithm == "quadq":
-        net = QuadraticQNet(OBS_DIM, saved["config"]["hidden"], action_low=lo, action_high=hi)
-        net.load_state_dict(saved["net"])
+        hidden = state.get("hidden", saved["config"].get("hidden"))
+        net = QuadraticQNet(obs_dim, hidden, action_low=lo, action_high=hi)
+        net.load_state_dict(state["net"])
         net.eval()
 
         @torch.no_grad()
@@ -734,10 +727,10 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
 
         return quadq_policy
     if algorithm == "dqn":
-        levels = saved["levels"].to(torch.float32)
+        levels = state["levels"].to(torch.float32)
         with seeded_init(0):
-            mlp = _mlp(OBS_DIM, len(levels), saved["hidden"], saved["layers"])
-        mlp.load_state_dict(saved["net"])
+            mlp = _mlp(obs_dim, len(levels), state["hidden"], state["layers"])
+        mlp.load_state_dict(state["net"])
         mlp.eval()
 
         @torch.no_grad()
@@ -748,9 +741,9 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     if algorithm == "td3":
         with seeded_init(0):
             actor = nn.Sequential(
-                _mlp(OBS_DIM, 1, saved["hidden"], saved["layers"]), ScaledTanh(lo, hi)
+                _mlp(obs_dim, 1, state["hidden"], state["layers"]), ScaledTanh(lo, hi)
             )
-        actor.load_state_dict(saved["net"])
+        actor.load_state_dict(state["net"])
         actor.eval()
 
         @torch.no_grad()
