@@ -53,6 +53,15 @@ def save(obj: dict[str, Any], path: str | Path) -> None:
     os.replace(tmp, path)
 
 
+def write_text(path: str | Path, text: str) -> None:
+    """Write a text file atomically: a reader, a resumed run or a kill sees the whole old file
+    or the whole new one (the temporary name is unique per process)."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text, newline="")  # written as given (a CSV keeps its \r\n)
+    os.replace(tmp, path)
+
+
 def load(path: str | Path, what: str = "file") -> dict[str, Any]:
     """Read a file written by `save`; `what` names it in errors ("checkpoint", "policy")."""
     path = Path(path)

@@ -27,7 +27,6 @@ import csv
 import glob
 import hashlib
 import io
-import os
 import time
 import zlib
 from collections.abc import Sequence
@@ -39,6 +38,7 @@ import numpy as np
 from marlmerge.backends import check_backend, run_tasks
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluate import rollout_first_egos
+from marlmerge.files import write_text
 from marlmerge.metrics import aggregate, episode_metrics
 from marlmerge.pettingzoo_env import find_preset, resolve_config
 from marlmerge.registry import (  # noqa: F401 - the grid's policies, re-exported
@@ -230,7 +230,7 @@ def run_grid(
         )
 
     def done(j: int, rows: list[dict]) -> None:
-        _write_atomically(files[todo[j]], _csv_text(rows))
+        write_text(files[todo[j]], _csv_text(rows))
         if bar is not None:
             bar.update(len(rows))
 
@@ -240,9 +240,7 @@ def run_grid(
     if bar is not None:
         bar.close()
     texts = [f.read_text() for f in files]
-    _write_atomically(
-        out / "episodes.csv", texts[0] + "".join(t.split("\n", 1)[1] for t in texts[1:])
-    )
+    write_text(out / "episodes.csv", texts[0] + "".join(t.split("\n", 1)[1] for t in texts[1:]))
     rows = list(csv.DictReader(io.StringIO((out / "episodes.csv").read_text())))
     result = GridResult(
         rows,
@@ -266,13 +264,6 @@ def _csv_text(rows: list[dict]) -> str:
     w.writeheader()
     w.writerows(rows)
     return buf.getvalue()
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    """A reader (or a resumed grid) sees the whole file or none of it."""
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _cell(rows: list[dict], policy: str, cond: str, metric: str) -> np.ndarray:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from marlmerge.backends import check_backend, run_tasks
+from marlmerge.files import write_text
 
 MEASURES = (
     ("success_rate", True),
@@ -203,8 +203,6 @@ def sweep(
         bar.close()
     summary = summarize(dict(zip(seeds, results, strict=True)))
     summary.update(preset=str(preset), kind=kind, backend=backend, wall_s=wall)
-    tmp = out / f"summary.json.tmp{os.getpid()}"
-    tmp.write_text(json.dumps(summary, indent=1))
-    os.replace(tmp, out / "summary.json")
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
     (out / "summary.md").write_text(summary_markdown(summary, str(preset), backend, wall))
     return summary

@@ -20,9 +20,9 @@ losses with torch optimisers, compiled when `update_path = "compiled"`.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
-import os
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -324,12 +324,11 @@ class CsvLog:
                     "(the log was deleted or cut): the run cannot be resumed exactly"
                 )
             rows = rows[:keep_rows]
-        tmp = path.with_name(path.name + ".tmp")
-        with tmp.open("w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(fields)
-            writer.writerows(rows)
-        os.replace(tmp, path)
+        text = io.StringIO()
+        writer = csv.writer(text)
+        writer.writerow(fields)
+        writer.writerows(rows)
+        files.write_text(path, text.getvalue())
         self.rows = len(rows)
         self.fh = path.open("a", newline="")
         self.writer = csv.writer(self.fh)
@@ -748,7 +747,7 @@ def _evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] 
         evaluation = evaluate_policy(
             greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
         )
-        atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
+        files.write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
     from marlmerge.plots import plot_run
 
     plot_run(out)
@@ -770,13 +769,6 @@ def _finish_resumed(cfg: TrainConfig, out: Path, ckpt: dict[str, Any]) -> TrainR
         out, ckpt["sim_steps"], ckpt["updates"], ckpt["egos"], 0.0, 0.0, 0.0, None, evaluation,
         already_finished=done,
     )  # fmt: skip
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write a small text file so that a kill leaves the old one or the new one, never half."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _progress(total: int, initial: int, enabled: bool):
