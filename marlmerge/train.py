@@ -241,7 +241,11 @@ def preset_path(path: str | Path) -> Path:
 def preset_kind(path: str | Path) -> str:
     """The schema a training preset names with its `kind` key: "train" or "cotrain"."""
     path = preset_path(path)
-    kind = read_toml(path).get("kind")
+    return _kind_of(path, read_toml(path))
+
+
+def _kind_of(path: Path, data: dict[str, Any]) -> str:
+    kind = data.get("kind")
     if kind not in PRESET_KINDS:
         raise ValueError(
             f"{path}: kind must name the preset's schema, one of {', '.join(PRESET_KINDS)} "
@@ -255,10 +259,10 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
     a name in `trainers/`; loaded strictly (unknown keys raise), `name` defaulting to the file's
     stem, with field overrides."""
     path = preset_path(path)
-    kind = preset_kind(path)
+    data = read_toml(path)
+    kind = _kind_of(path, data)
     if kind != cls.KIND:  # type: ignore[attr-defined]
         raise ValueError(f"{path} is a {kind!r} preset: run it with `marlmerge {kind} {path.stem}`")
-    data = read_toml(path)
     del data["kind"]
     data.setdefault("name", path.stem)
     data.update(overrides)
