@@ -38,16 +38,12 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge import files
 from marlmerge.batched_env import BatchedMergeEnv
-from marlmerge.config import check_values, from_dict, read_toml, to_dict
-from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy, make_learner
-from marlmerge.learners.quadq import (
-    FastQuadQUpdater,
-    GaussianExploration,
-    PeriodicHardUpdate,
-    QuadraticQLoss,
-    QuadraticQNet,
-    unpack_rows,
-)
+from marlmerge.config import ScenarioConfig, check_values, from_dict, read_toml, to_dict
+from marlmerge.learners.base import Learner
+from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy
+from marlmerge.learners.baselines_rl import make_learner as make_peer_learner
+from marlmerge.learners.quadq import GaussianExploration
+from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.pettingzoo_env import resolve_config
 from marlmerge.policy_file import write_policy
 from marlmerge.presets import preset_dir
@@ -277,24 +273,6 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
 # ----------------------------------------------------------------------------------------------
 
 
-class NoisyGreedyPolicy:
-    """Collector policy: `action = clip(B(s) + sigma(step) * N(0, 1))` (m/s^2)."""
-
-    def __init__(
-        self, net: QuadraticQNet, exploration: GaussianExploration, generator: torch.Generator
-    ):
-        self.net = net
-        self.exploration = exploration
-        self.generator = generator
-        self.sim_step = 0
-
-    @torch.no_grad()
-    def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        action = self.net.greedy(td.get("observation"))  # [B, 1]
-        td.set("action", self.exploration(action, self.sim_step, self.generator))
-        return td
-
-
 # ----------------------------------------------------------------------------------------------
 # Logging
 # ----------------------------------------------------------------------------------------------
@@ -402,6 +380,39 @@ def _read_rows(path: Path, fields: tuple[str, ...]) -> list[list[str]]:
 
 
 # ----------------------------------------------------------------------------------------------
+# Factories: the parts of a run
+# ----------------------------------------------------------------------------------------------
+
+
+def make_learner(cfg: TrainConfig, scen: ScenarioConfig, sample_gen: torch.Generator) -> Learner:
+    """The learner of `cfg.algorithm` (`marlmerge.learners.base.Learner`), seeded from
+    `cfg.seed`; its exploration decays over `sigma_decay_fraction` of the run."""
+    lo, hi = scen.ego.accel_bounds_mps2
+    if cfg.algorithm != "quadq":  # networks from cfg.seed, target smoothing (td3) cfg.seed + 3
+        return make_peer_learner(cfg, lo, hi)
+    decay = max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1)
+    return QuadQLearner(
+        len(EGO_FEATURES),
+        cfg.hidden,
+        lo,
+        hi,
+        gamma=cfg.gamma,
+        lr=cfg.lr,
+        target_update_period=cfg.target_update_period,
+        exploration=GaussianExploration(cfg.sigma_start, cfg.sigma_end, decay, lo, hi),
+        update_path=cfg.update_path,
+        updates_per_call=cfg.updates_per_call,
+        seed=cfg.seed,
+        sample_generator=sample_gen,
+    )
+
+
+def make_replay(cfg: TrainConfig, sample_gen: torch.Generator) -> ReplayBuffer:
+    """torchrl buffer of packed transitions [obs | action | reward | terminated | next_obs]."""
+    return ReplayBuffer(storage=LazyTensorStorage(cfg.replay_capacity), generator=sample_gen)
+
+
+# ----------------------------------------------------------------------------------------------
 # Checkpoints
 # ----------------------------------------------------------------------------------------------
 
@@ -475,66 +486,19 @@ def train(
     if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
         return _finish_resumed(cfg, out, ckpt)
 
-    # ---- environment, network, loss, exploration
+    # ---- environment, learner, replay (every part from a factory; no branch per algorithm)
     env = BatchedMergeEnv(cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed)
     scen = env.cfg
     k = scen.sim.action_repeat
-    lo, hi = scen.ego.accel_bounds_mps2
     noise_gen = torch.Generator().manual_seed(cfg.seed + 1)
     sample_gen = torch.Generator().manual_seed(cfg.seed + 2)
-    learner = None  # the peer learner (dqn, td3); None for quadq
-    if cfg.algorithm == "quadq":
-        init_gen = torch.Generator().manual_seed(cfg.seed)
-        net = QuadraticQNet(
-            len(EGO_FEATURES), cfg.hidden, action_low=lo, action_high=hi, generator=init_gen
-        )
-        loss_module = QuadraticQLoss(net, gamma=cfg.gamma)
-        exploration = GaussianExploration(
-            cfg.sigma_start,
-            cfg.sigma_end,
-            max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1),
-            lo,
-            hi,
-        )
-        policy = NoisyGreedyPolicy(net, exploration, noise_gen)
-    else:  # networks seeded from cfg.seed, target smoothing (td3) from cfg.seed + 3
-        net = None  # the learner owns its networks
-        learner = make_learner(cfg, lo, hi)
-        policy = LearnerPolicy(learner, noise_gen)
-
-    # ---- replay: torchrl buffer of packed transitions [obs | action | reward | term | next_obs]
-    replay = ReplayBuffer(storage=LazyTensorStorage(cfg.replay_capacity), generator=sample_gen)
-
-    # ---- update path (weights restored first: the fast path aliases them into flat buffers)
-    if ckpt is not None and learner is None:
-        loss_module.load_state_dict(ckpt["loss"])
-    if learner is not None:
-        fast = None  # the learner owns its loss, optimiser(s) and target updater
-    elif cfg.update_path == "torchrl":
-        optimizer = torch.optim.Adam(loss_module.parameters(), lr=cfg.lr)
-        target_updater = PeriodicHardUpdate(loss_module, period=cfg.target_update_period)
-        fast = None
-    else:
-        fast = FastQuadQUpdater(
-            loss_module,
-            None,
-            generator=sample_gen,
-            lr=cfg.lr,
-            batch_size=cfg.batch_size,
-            updates_per_call=cfg.updates_per_call,
-            target_update_period=cfg.target_update_period,
-            compile=cfg.update_path == "compiled",
-        )
+    learner = make_learner(cfg, scen, sample_gen)
+    policy = LearnerPolicy(learner, noise_gen)
+    replay = make_replay(cfg, sample_gen)
 
     sim_steps = updates = 0
     if ckpt is not None:
-        if learner is not None:
-            learner.load_state_dict(ckpt["learner"])
-        elif fast is not None:
-            fast.load_state_dict(ckpt["optimizer"])
-        else:
-            optimizer.load_state_dict(ckpt["optimizer"])
-            target_updater.load_state_dict(ckpt["target_updater"])
+        learner.load_state_dict(ckpt["learner"])
         replay.load_state_dict(ckpt["replay"])
         sample_gen.set_state(ckpt["sample_gen"])
         env.load_sim_state(ckpt["env"])
@@ -574,16 +538,6 @@ def train(
     t_collect = time.perf_counter()
     recent: list[dict] = []
 
-    def learner_state() -> dict[str, Any]:
-        """Weights with targets, optimiser(s), target-updater progress (and learner RNG)."""
-        if learner is not None:
-            return {"learner": learner.state_dict()}
-        return {
-            "loss": loss_module.state_dict(),
-            "optimizer": fast.state_dict() if fast is not None else optimizer.state_dict(),
-            "target_updater": None if fast is not None else target_updater.state_dict(),
-        }
-
     def checkpoint() -> None:
         loss_log.flush()
         ego_log.flush()
@@ -592,7 +546,7 @@ def train(
             {
                 "config": to_dict(cfg),
                 "algorithm": cfg.algorithm,
-                **learner_state(),
+                "learner": learner.state_dict(),
                 "replay": replay.state_dict(),
                 "noise_gen": noise_gen.get_state(),
                 "sample_gen": sample_gen.get_state(),
@@ -615,7 +569,7 @@ def train(
         rows = torch.cat(
             [
                 flat.get("observation"),
-                flat.get("action") if learner is None else learner.replay_action(flat),
+                learner.replay_action(flat),
                 nxt.get("reward"),
                 nxt.get("terminated").float(),
                 nxt.get("observation"),
@@ -632,34 +586,12 @@ def train(
         owed = int(sim_steps * cfg.updates_per_sim_step) - updates
         if len(replay) < cfg.learning_starts:
             updates += owed  # skipped: too little data to learn from yet
-        elif learner is not None:
-            if owed > 0:  # all minibatches of this batch in one sampling call
-                mbs = replay.sample(owed * cfg.batch_size).view(owed, cfg.batch_size, -1)
-                for j in range(owed):
-                    loss = learner.update(mbs[j])
-                    updates += 1
-                    if updates % cfg.loss_log_every == 0:
-                        loss_log.write([updates, sim_steps, float(loss)])
-        elif fast is not None:
-            n_calls = owed // fast.k
-            for _ in range(n_calls):
-                mb = replay.sample(fast.k * cfg.batch_size).view(fast.k, cfg.batch_size, -1)
-                losses = fast.step(mb)
-                first = (-(updates + 1)) % cfg.loss_log_every  # update n = updates + j + 1
-                for j in range(first, fast.k, cfg.loss_log_every):
-                    loss_log.write([updates + j + 1, sim_steps, float(losses[j])])
-                updates += fast.k
         else:
-            for _ in range(owed):
-                td = unpack_rows(replay.sample(cfg.batch_size), len(EGO_FEATURES))
-                out_td = loss_module(td)
-                optimizer.zero_grad()
-                out_td["loss_value"].backward()
-                optimizer.step()
-                target_updater.step()
-                updates += 1
-                if updates % cfg.loss_log_every == 0:
-                    loss_log.write([updates, sim_steps, out_td["loss_value"].item()])
+            losses = learner.learn(replay, owed, cfg.batch_size)  # [n <= owed]
+            first = (-(updates + 1)) % cfg.loss_log_every  # update n = updates + j + 1
+            for j in range(first, len(losses), cfg.loss_log_every):
+                loss_log.write([updates + j + 1, sim_steps, float(losses[j])])
+            updates += len(losses)
         update_s += time.perf_counter() - t_upd
 
         if bar is not None:
@@ -673,7 +605,7 @@ def train(
                 )
         recent = recent[-200:]
         if sim_steps >= cfg.total_sim_steps:  # the policy first: a finished checkpoint has one
-            save_policy(out / "policy.pt", cfg, scen, net, learner)
+            save_policy(out / "policy.pt", cfg, scen, learner)
         if sim_steps >= next_ckpt or sim_steps >= cfg.total_sim_steps:
             checkpoint()
             next_ckpt += cfg.checkpoint_every_sim_steps
@@ -694,7 +626,7 @@ def train(
 
     evaluation = None
     if finished:
-        evaluation = _evaluate_and_plot(cfg, out, net.greedy if learner is None else learner.greedy)
+        evaluation = _evaluate_and_plot(cfg, out, learner.greedy)
     result = TrainResult(
         out,
         sim_steps,
@@ -703,9 +635,7 @@ def train(
         wall,
         update_s,
         collect_s,
-        fast.compile_time_s
-        if fast is not None
-        else (learner.compile_time_s if learner is not None else None),
+        learner.compile_time_s,
         evaluation,
     )
     (out / "timing.json").write_text(
@@ -727,15 +657,14 @@ def train(
     return result
 
 
-def save_policy(path: Path, cfg: TrainConfig, scen, net, learner) -> None:
+def save_policy(path: Path, cfg: TrainConfig, scen, learner: Learner) -> None:
     """policy.pt (`marlmerge.policy_file`): what `load_policy` rebuilds the greedy policy from."""
-    state = {"net": net.state_dict(), "hidden": cfg.hidden} if learner is None else None
     write_policy(
         path,
         "ego",
         cfg.algorithm,
         scen.ego.accel_bounds_mps2,
-        state if state is not None else learner.policy_state(),
+        learner.policy_state(),
         to_dict(cfg),
         to_dict(scen),
     )

@@ -42,6 +42,7 @@ from torchrl.data import Bounded, Categorical
 from torchrl.modules import MLP, Actor, QValueActor, ValueOperator
 from torchrl.objectives import DQNLoss, SoftUpdate, TD3Loss
 
+from marlmerge.learners.base import Learner
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
     GaussianExploration,
@@ -302,19 +303,14 @@ def _rows_to_td(rows: Tensor, d: int, action: Tensor) -> TensorDictBase:
     return td
 
 
-class BaselineLearner:
-    """What the training loop needs from a learner other than quadq.
+class BaselineLearner(Learner):
+    """A torchrl-loss learner (DQN, TD3): one gradient update per minibatch.
 
     Attributes:
-        algorithm: ``"dqn"`` or ``"td3"``.
         num_updates: gradient updates (critic updates for TD3) made so far.
-        compile_time_s: seconds spent in the first (compiling) calls of the compiled gradient
-            steps; ``None`` when they run eagerly.
     """
 
-    algorithm: str = ""
     num_updates: int = 0
-    compile_time_s: float | None = None
     _uncompiled_calls: set[str]
     """Names of compiled steps not called yet (their first call compiles them)."""
 
@@ -329,31 +325,16 @@ class BaselineLearner:
         self._uncompiled_calls.discard(name)
         return out
 
-    def act(self, obs: Tensor, sim_step: int, generator: torch.Generator | None) -> dict:
-        """Exploring (``generator`` given) or greedy action: ``{"action": [B, 1] m/s^2, ...}``."""
-        raise NotImplementedError
-
-    def greedy(self, obs: Tensor) -> Tensor:
-        """Greedy acceleration [..., 1], m/s^2, inside the bounds."""
-        raise NotImplementedError
-
-    def replay_action(self, flat: TensorDictBase) -> Tensor:
-        """The replay's action column [N, 1] (float) from a flat collector batch [N]."""
-        raise NotImplementedError
-
     def update(self, rows: Tensor) -> Tensor:
         """One gradient update on packed rows [M, 2d + 3]; returns the (critic) loss, detached."""
         raise NotImplementedError
 
-    def state_dict(self) -> dict[str, Any]:
-        raise NotImplementedError
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        raise NotImplementedError
-
-    def policy_state(self) -> dict[str, Any]:
-        """What ``policy.pt`` needs to rebuild the greedy policy (see :func:`load_policy`)."""
-        raise NotImplementedError
+    def learn(self, replay: Any, owed: int, batch_size: int) -> Tensor:
+        """`owed` updates, their minibatches drawn in one sampling call."""
+        if owed <= 0:
+            return torch.empty(0)
+        mbs = replay.sample(owed * batch_size).view(owed, batch_size, -1)
+        return torch.stack([self.update(mbs[j]) for j in range(owed)])
 
 
 class EpsilonGreedy:
@@ -673,10 +654,10 @@ def make_learner(cfg: Any, low: float, high: float) -> BaselineLearner:
 
 
 class LearnerPolicy:
-    """Collector policy around a :class:`BaselineLearner`: writes ``action`` [B, 1] (m/s^2) and,
-    for DQN, ``action_index`` [B]; explores with ``generator``."""
+    """Collector policy around any :class:`~marlmerge.learners.base.Learner`: writes ``action``
+    [B, 1] (m/s^2) and, for DQN, ``action_index`` [B]; explores with ``generator``."""
 
-    def __init__(self, learner: BaselineLearner, generator: torch.Generator) -> None:
+    def __init__(self, learner: Learner, generator: torch.Generator) -> None:
         self.learner = learner
         self.generator = generator
         self.sim_step = 0

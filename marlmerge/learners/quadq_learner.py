@@ -1,0 +1,146 @@
+"""The paper's learner behind the one learner protocol: the quadratic-Q network, its loss, and
+one of two update paths — the fast path (`FastQuadQUpdater`, `update_path` "fast" or
+"compiled") or the plain torchrl loop (`LossModule` + `torch.optim.Adam` +
+`PeriodicHardUpdate`, `update_path` "torchrl"). Both compute the same loss."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from marlmerge.learners.base import Learner
+from marlmerge.learners.quadq import (
+    FastQuadQUpdater,
+    GaussianExploration,
+    PeriodicHardUpdate,
+    QuadraticQLoss,
+    QuadraticQNet,
+    unpack_rows,
+)
+
+
+class QuadQLearner(Learner):
+    """Q(s, a) = A(s) (B(s) - a)^2 + C(s); greedy action B(s), Gaussian exploration around it.
+
+    Args:
+        obs_dim: observation size; hidden: width of the A, B, C networks.
+        low, high: action bounds, m/s^2 (B is squashed strictly inside them).
+        gamma, lr, target_update_period: the paper's Q-learning settings.
+        exploration: the Gaussian noise schedule of the collector's actions.
+        update_path: "fast" (hand-written gradients and Adam), "compiled" (the same, compiled)
+            or "torchrl" (the plain LossModule loop).
+        updates_per_call: updates per fast-path call (must divide the target period).
+        seed: initialises the networks; sample_generator: draws the minibatches.
+    """
+
+    algorithm = "quadq"
+
+    def __init__(
+        self,
+        obs_dim: int,
+        hidden: int,
+        low: float,
+        high: float,
+        *,
+        gamma: float,
+        lr: float,
+        target_update_period: int,
+        exploration: GaussianExploration,
+        update_path: str,
+        updates_per_call: int,
+        seed: int,
+        sample_generator: torch.Generator,
+    ) -> None:
+        init = torch.Generator().manual_seed(seed)
+        self.obs_dim, self.hidden = obs_dim, hidden
+        self.net = QuadraticQNet(obs_dim, hidden, action_low=low, action_high=high, generator=init)
+        self.loss_module = QuadraticQLoss(self.net, gamma=gamma)
+        self.exploration = exploration
+        self.update_path = update_path
+        self._settings = dict(
+            lr=lr, target_update_period=target_update_period, updates_per_call=updates_per_call
+        )
+        self.sample_generator = sample_generator
+        self._build_updater()
+
+    def _build_updater(self) -> None:
+        """The update path over the loss module's current weights (the fast path aliases them
+        into flat buffers, so it is rebuilt after weights are loaded)."""
+        s = self._settings
+        self.fast: FastQuadQUpdater | None = None
+        if self.update_path == "torchrl":
+            self.optimizer = torch.optim.Adam(self.loss_module.parameters(), lr=s["lr"])
+            self.target_updater = PeriodicHardUpdate(
+                self.loss_module, period=s["target_update_period"]
+            )
+            return
+        self.fast = FastQuadQUpdater(
+            self.loss_module,
+            None,
+            generator=self.sample_generator,
+            lr=s["lr"],
+            batch_size=1,  # minibatches are passed in by `learn`
+            updates_per_call=s["updates_per_call"],
+            target_update_period=s["target_update_period"],
+            compile=self.update_path == "compiled",
+        )
+
+    @property
+    def compile_time_s(self) -> float | None:  # type: ignore[override]
+        return None if self.fast is None else self.fast.compile_time_s
+
+    @torch.no_grad()
+    def act(self, obs: Tensor, sim_step: int, generator: torch.Generator | None) -> dict:
+        action = self.net.greedy(obs)  # [B, 1]
+        if generator is not None:
+            action = self.exploration(action, sim_step, generator)
+        return {"action": action}
+
+    def greedy(self, obs: Tensor) -> Tensor:
+        return self.net.greedy(obs)
+
+    def replay_action(self, flat: TensorDictBase) -> Tensor:
+        return flat.get("action")
+
+    def learn(self, replay: Any, owed: int, batch_size: int) -> Tensor:
+        """The fast path updates `updates_per_call` at a time (a call's minibatches drawn in one
+        sampling call; the rest of `owed` waits for the next call); the torchrl path one by one."""
+        losses: list[Tensor] = []
+        if self.fast is not None:
+            k = self.fast.k
+            for _ in range(owed // k):
+                mb = replay.sample(k * batch_size).view(k, batch_size, -1)
+                losses.append(self.fast.step(mb))
+            return torch.cat(losses) if losses else torch.empty(0)
+        for _ in range(owed):
+            out = self.loss_module(unpack_rows(replay.sample(batch_size), self.obs_dim))
+            self.optimizer.zero_grad()
+            out["loss_value"].backward()
+            self.optimizer.step()
+            self.target_updater.step()
+            losses.append(out["loss_value"].detach())
+        return torch.stack(losses) if losses else torch.empty(0)
+
+    def state_dict(self) -> dict[str, Any]:
+        torchrl_path = self.fast is None
+        return {
+            "loss": self.loss_module.state_dict(),
+            "optimizer": self.optimizer.state_dict() if torchrl_path else self.fast.state_dict(),
+            "target_updater": self.target_updater.state_dict() if torchrl_path else None,
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.loss_module.load_state_dict(state["loss"])
+        self._build_updater()
+        if self.fast is not None:
+            self.fast.load_state_dict(state["optimizer"])
+        else:
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.target_updater.load_state_dict(state["target_updater"])
+
+    def policy_state(self) -> dict[str, Any]:
+        return {"net": self.net.state_dict(), "hidden": self.hidden}
