@@ -61,6 +61,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from marlmerge import files
 from marlmerge.config import ScenarioConfig, check_values, from_dict, to_dict
 from marlmerge.learners.quadq import (
+    PAPER_GAMMA,
     FastQuadQUpdater,
     GaussianExploration,
     QuadraticQLoss,
@@ -139,7 +140,7 @@ class CoTrainConfig:
     """Ego phases: share of egos that meet scripted traffic rather than a pool snapshot."""
     pool_size: int = 10
     """Adversary snapshots kept (oldest dropped first)."""
-    gamma: float = 0.95
+    gamma: float = PAPER_GAMMA
     lr: float = 1.0e-3
     batch_size: int = 32
     target_update_period: int = 500

@@ -42,7 +42,7 @@ from marlmerge.config import ScenarioConfig, check_values, from_dict, read_toml,
 from marlmerge.learners.base import Learner
 from marlmerge.learners.baselines_rl import ALGORITHMS, LearnerPolicy
 from marlmerge.learners.baselines_rl import make_learner as make_peer_learner
-from marlmerge.learners.quadq import GaussianExploration
+from marlmerge.learners.quadq import PAPER_GAMMA, GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.pettingzoo_env import resolve_config
 from marlmerge.policy_file import write_policy
@@ -107,7 +107,7 @@ class TrainConfig:
     """Gradient updates per simulator step of experience (paper: 1, i.e. k per transition)."""
     batch_size: int = 32
     """M: minibatch size."""
-    gamma: float = 0.95
+    gamma: float = PAPER_GAMMA
     lr: float = 1.0e-3
     target_update_period: int = 500
     """p: the target network is a copy of the online one, refreshed every p updates."""

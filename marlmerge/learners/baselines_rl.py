@@ -45,6 +45,7 @@ from torchrl.objectives import DQNLoss, SoftUpdate, TD3Loss
 from marlmerge.learners.base import Learner
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
+    PAPER_GAMMA,
     GaussianExploration,
     PeriodicHardUpdate,
     QuadraticQNet,
@@ -168,7 +169,9 @@ def make_dqn_qnet(
     return QValueActor(mlp, in_keys=["observation"], spec=Categorical(n_levels))
 
 
-def make_dqn_loss(qnet: QValueActor, *, gamma: float = 0.95, double_dqn: bool = False) -> DQNLoss:
+def make_dqn_loss(
+    qnet: QValueActor, *, gamma: float = PAPER_GAMMA, double_dqn: bool = False
+) -> DQNLoss:
     """torchrl ``DQNLoss`` (target network, squared TD error, TD(0) with ``gamma``).
 
     Reads ``observation``, ``action`` (level index, int64 [B]), ``("next", "reward")`` [B, 1],
@@ -252,7 +255,7 @@ def make_td3_loss(
     low: float,
     high: float,
     *,
-    gamma: float = 0.95,
+    gamma: float = PAPER_GAMMA,
     policy_noise: float = 0.7,
     noise_clip: float = 1.75,
     seed: int = 0,
@@ -385,7 +388,7 @@ class DQNLearner(BaselineLearner):
         *,
         hidden: int = 64,
         layers: int = 2,
-        gamma: float = 0.95,
+        gamma: float = PAPER_GAMMA,
         lr: float = 1e-3,
         target_update_period: int = 500,
         double_dqn: bool = False,
@@ -491,7 +494,7 @@ class TD3Learner(BaselineLearner):
         *,
         hidden: int = 64,
         layers: int = 2,
-        gamma: float = 0.95,
+        gamma: float = PAPER_GAMMA,
         lr: float = 1e-3,
         tau: float = 0.005,
         policy_delay: int = 2,

@@ -55,6 +55,8 @@ __all__ = [
     "unpack_rows",
 ]
 
+PAPER_GAMMA = 0.95
+"""The discount factor of the paper's recipe (Sec. IV.B): every default discount."""
 DEFAULT_ACTION_BOUNDS: tuple[float, float] = (-4.5, 2.5)
 """Ego acceleration bounds, m/s^2 (``EgoConfig.accel_bounds_mps2``)."""
 
@@ -267,7 +269,7 @@ class QuadraticQLoss(LossModule):
         self,
         value_network: nn.Module,
         *,
-        gamma: float = 0.95,
+        gamma: float = PAPER_GAMMA,
         reduction: str = "mean",
         use_prioritized_weights: str | bool = "auto",
     ) -> None:
