@@ -478,8 +478,12 @@ def train(
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
         ckpt = files.load(ckpt_path, "checkpoint")
         saved_cfg = from_dict(TrainConfig, ckpt["config"])
-        if saved_cfg != cfg:
-            cfg = saved_cfg  # the checkpoint's config wins: a resumed run continues that run
+        if saved_cfg != cfg:  # a resumed run continues that run, with its own config
+            differ = [k for k, v in to_dict(cfg).items() if ckpt["config"].get(k) != v]
+            raise ValueError(
+                f"{ckpt_path}: the run was made with other values of {', '.join(differ)}; "
+                "resume it with its own config (`marlmerge train --out RUN --resume`)"
+            )
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=1))
     torch.set_num_threads(cfg.threads)
 

@@ -149,6 +149,11 @@ def test_a_run_killed_during_its_final_evaluation_is_evaluated_on_resume(tmp_pat
 def test_resume_refuses_a_set_that_differs_from_the_checkpoint(tmp_path, capsys):
     cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
     train(cfg, tmp_path, progress=False, stop_after_sim_steps=2_048)
+    other = TrainConfig(**{**TINY, "eval_episodes": 0, "lr": 0.5, "hidden": 8})
+    with pytest.raises(
+        ValueError, match=r"checkpoint\.pt: the run was made with other values of lr, hidden"
+    ):
+        train(other, tmp_path, resume=True, progress=False)
     argv = ["train", "--out", str(tmp_path), "--resume", "--no-progress", "--set=lr=0.5"]
     assert main(argv) == 2
     err = capsys.readouterr().err
