@@ -193,22 +193,10 @@ class CoTrainConfig:
                 f"profile must be one of {tuple(PROFILES)}, got {self.profile!r}",
             ),
             (self.update_path in ("compiled", "fast"), "update_path must be 'compiled' or 'fast'"),
-            (self.num_worlds >= 1, f"num_worlds must be >= 1, got {self.num_worlds}"),
-            (self.rounds >= 0, f"rounds must be >= 0, got {self.rounds}"),
-            (0.0 <= self.scripted_fraction <= 1.0, "scripted_fraction must lie in [0, 1]"),
-            (self.pool_size >= 1, f"pool_size must be >= 1, got {self.pool_size}"),
-            (
-                self.select_episodes >= 0,
-                f"select_episodes must be >= 0, got {self.select_episodes}",
-            ),
             (0.0 < self.gamma < 1.0, f"gamma must lie in (0, 1), got {self.gamma}"),
             (
                 self.target_update_period % self.updates_per_call == 0,
                 "updates_per_call must divide target_update_period",
-            ),
-            (
-                min(self.ego_pretrain_sim_steps, self.adversary_sim_steps, self.ego_sim_steps) >= 0,
-                "phase lengths must be >= 0",
             ),
         ]
         for ok, msg in checks:
@@ -566,7 +554,7 @@ def cotrain(
         saved = read_policy(cfg.ego_init, "ego")
         if saved["algorithm"] != "quadq":
             raise ValueError(f"ego_init {cfg.ego_init!r} is not a quadratic-Q policy")
-        hidden = saved["policy_state"].get("hidden", saved["config"].get("hidden"))
+        hidden = saved["policy_state"]["hidden"]
         if hidden != cfg.hidden:
             raise ValueError(f"ego_init {cfg.ego_init!r} has hidden={hidden}, not {cfg.hidden}")
         if tuple(saved["action_bounds_mps2"]) != tuple(ego_bounds):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import pickle
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -45,21 +46,23 @@ def _restore(obj: Any) -> Any:
     return obj
 
 
+def _atomically(path: str | Path, write: Callable[[Path], None]) -> None:
+    """`write` a temporary file beside `path` (unique per process), then move it over `path`:
+    a reader, a resumed run or a kill sees the whole old file or the whole new one."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
+    write(tmp)
+    os.replace(tmp, path)
+
+
 def save(obj: dict[str, Any], path: str | Path) -> None:
     """Write `obj` (tensors, NumPy arrays, numbers, strings, lists, tuples, dicts) to `path`."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(_plain(obj), tmp)
-    os.replace(tmp, path)
+    _atomically(path, lambda tmp: torch.save(_plain(obj), tmp))
 
 
 def write_text(path: str | Path, text: str) -> None:
-    """Write a text file atomically: a reader, a resumed run or a kill sees the whole old file
-    or the whole new one (the temporary name is unique per process)."""
-    path = Path(path)
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text, newline="")  # written as given (a CSV keeps its \r\n)
-    os.replace(tmp, path)
+    """Write a text file atomically, as given (a CSV keeps its \\r\\n)."""
+    _atomically(path, lambda tmp: tmp.write_text(text, newline=""))
 
 
 def load(path: str | Path, what: str = "file") -> dict[str, Any]:

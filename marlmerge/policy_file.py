@@ -100,6 +100,8 @@ def _from_v0(saved: dict[str, Any], group: str) -> dict[str, Any]:
         algorithm = saved.get("algorithm", "quadq")
         bounds = saved["scenario"]["ego"]["accel_bounds_mps2"]
         state = {k: v for k, v in saved.items() if k not in ("algorithm", "config", "scenario")}
+        if algorithm == "quadq":  # 0.2 kept the width in the config only
+            state["hidden"] = saved["config"]["hidden"]
     else:
         algorithm = "quadq-residual"
         bounds = saved.get("action_bounds", V0_HIGHWAY_BOUNDS_MPS2)

@@ -72,7 +72,6 @@ TRAIN_RULES = {
         ">=0",
     ),
     "lr": ">0",
-    "td3_tau": ">0",
     "sigma_decay_fraction": "[0,1]",
     "epsilon_start": "[0,1]",
     "epsilon_end": "[0,1]",
@@ -180,34 +179,14 @@ class TrainConfig:
                 self.update_path in UPDATE_PATHS,
                 f"update_path must be one of {UPDATE_PATHS}, got {self.update_path!r}",
             ),
-            (self.total_sim_steps > 0, f"total_sim_steps must be > 0, got {self.total_sim_steps}"),
-            (self.num_worlds >= 1, f"num_worlds must be >= 1, got {self.num_worlds}"),
             (
                 self.target_update_period % self.updates_per_call == 0,
                 f"updates_per_call ({self.updates_per_call}) must divide target_update_period "
                 f"({self.target_update_period})",
             ),
             (0.0 < self.gamma < 1.0, f"gamma must lie in (0, 1), got {self.gamma}"),
-            (self.eval_episodes >= 0, f"eval_episodes must be >= 0, got {self.eval_episodes}"),
-            (
-                self.updates_per_sim_step >= 0,
-                f"updates_per_sim_step must be >= 0, got {self.updates_per_sim_step}",
-            ),
-            (
-                self.mlp_hidden_layers >= 1,
-                f"mlp_hidden_layers must be >= 1, got {self.mlp_hidden_layers}",
-            ),
             (self.dqn_levels >= 2, f"dqn_levels must be >= 2, got {self.dqn_levels}"),
-            (
-                0.0 <= self.epsilon_end <= 1.0 and 0.0 <= self.epsilon_start <= 1.0,
-                f"epsilon_start and epsilon_end must lie in [0, 1], got {self.epsilon_start}, "
-                f"{self.epsilon_end}",
-            ),
             (0.0 < self.td3_tau <= 1.0, f"td3_tau must lie in (0, 1], got {self.td3_tau}"),
-            (
-                self.td3_policy_delay >= 1,
-                f"td3_policy_delay must be >= 1, got {self.td3_policy_delay}",
-            ),
         ]
         for ok, msg in checks:
             if not ok:

@@ -700,8 +700,7 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     lo, hi = saved["action_bounds_mps2"]
     obs_dim = saved["observation"]["size"]
     if algorithm == "quadq":
-        hidden = state.get("hidden", saved["config"].get("hidden"))
-        net = QuadraticQNet(obs_dim, hidden, action_low=lo, action_high=hi)
+        net = QuadraticQNet(obs_dim, state["hidden"], action_low=lo, action_high=hi)
         net.load_state_dict(state["net"])
         net.eval()
 
