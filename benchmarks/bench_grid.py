@@ -37,12 +37,13 @@ def learned_run(folder: str) -> str:
     import torch
 
     from marlmerge.config import ScenarioConfig
-    from marlmerge.learners.quadq import QuadraticQNet
-    from marlmerge.train import TrainConfig, save_policy
+    from marlmerge.spec.observation import EGO_FEATURES
+    from marlmerge.train import TrainConfig, make_learner, save_policy
 
-    net = QuadraticQNet(7, TrainConfig().hidden, generator=torch.Generator().manual_seed(0))
+    cfg, scen = TrainConfig(update_path="fast"), ScenarioConfig()
+    learner = make_learner(cfg, scen, torch.Generator().manual_seed(0), len(EGO_FEATURES))
     os.makedirs(folder, exist_ok=True)
-    save_policy(os.path.join(folder, "policy.pt"), TrainConfig(), ScenarioConfig(), net, None)
+    save_policy(os.path.join(folder, "policy.pt"), cfg, scen, learner)
     return folder
 
 

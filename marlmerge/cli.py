@@ -133,7 +133,7 @@ def _parse_sets(items: list[str]) -> dict:
 def _run_config(cls: type, out: Path, cfg: Any, sets: dict[str, Any], resume: bool) -> Any:
     """The config a run in `out` trains with: `cfg` for a new run, the checkpoint's when
     resuming (a `--set` that differs from it is an error naming the key)."""
-    from marlmerge.train import resume_config
+    from marlmerge.training.presets import resume_config
 
     has_run = (out / "checkpoint.pt").exists()
     if has_run and not resume:
@@ -155,8 +155,9 @@ def train_cmd(args: argparse.Namespace) -> int:
         cfg = load_train_config(args.preset, **sets)
     else:
         from marlmerge.config import from_dict, to_dict
+        from marlmerge.training.presets import with_overrides
 
-        cfg = from_dict(TrainConfig, {**to_dict(TrainConfig()), **sets})
+        cfg = from_dict(TrainConfig, with_overrides(to_dict(TrainConfig()), sets))
     out = Path(args.out or f"runs/{cfg.name}")
     cfg = _run_config(TrainConfig, out, cfg, sets, args.resume)
     print(
@@ -195,6 +196,8 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
         flush=True,
     )
     result = cotrain(cfg, out, resume=args.resume, progress=not args.no_progress)
+    if result.already_finished:
+        print(f"{out} had finished co-training and been evaluated: nothing to do, nothing changed")
     print(
         f"done: {result.sim_steps:,} simulator steps, {result.egos:,} ramp vehicles, "
         f"{result.pool_size} highway snapshots in the pool, {result.wall_s:.0f} s"
@@ -242,7 +245,7 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     policy = policy_from_spec(args.policy, scen)
     highway = None
     if args.highway:
-        from marlmerge.cotrain import load_highway_policy
+        from marlmerge.learned_highway import load_highway_policy
 
         highway = load_highway_policy(args.highway)
     ev = evaluate_policy(policy, scen, args.episodes, args.seed, args.worlds, highway)

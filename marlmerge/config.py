@@ -301,19 +301,37 @@ class ScenarioConfig:
         """A copy with dotted-path overrides: `replace(**{"traffic.flow_vph_per_lane": 800})`."""
         data = to_dict(self)
         for dotted, value in overrides.items():
-            node = data
-            *parents, leaf = dotted.split(".")
-            for p in parents:
-                if not isinstance(node.get(p), dict):
-                    raise ValueError(f"unknown config key {dotted!r}")
-                node = node[p]
-            if leaf not in node:
-                raise ValueError(f"unknown config key {dotted!r}")
-            node[leaf] = value
+            set_dotted(data, dotted, value)
         return from_dict(ScenarioConfig, data)
 
 
 T = TypeVar("T")
+
+
+def set_dotted(data: dict[str, Any], dotted: str, value: Any, create: bool = False) -> None:
+    """Set `data["a"]["b"] = value` for `dotted = "a.b"`; an unknown key raises (`create`: a
+    missing key or table is added, for `from_dict` to judge)."""
+    node = data
+    *parents, leaf = dotted.split(".")
+    for p in parents:
+        if create and p not in node:
+            node[p] = {}
+        if not isinstance(node.get(p), dict):
+            raise ValueError(f"unknown config key {dotted!r}")
+        node = node[p]
+    if leaf not in node and not create:
+        raise ValueError(f"unknown config key {dotted!r}")
+    node[leaf] = value
+
+
+def get_dotted(cfg: Any, dotted: str) -> Any:
+    """`cfg.a.b` for `dotted = "a.b"`; an unknown key raises `ValueError`."""
+    node = cfg
+    for part in dotted.split("."):
+        if not hasattr(node, part):
+            raise ValueError(f"unknown config key {dotted!r}")
+        node = getattr(node, part)
+    return node
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

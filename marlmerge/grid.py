@@ -159,7 +159,7 @@ def road_seeds(seed: int, preset_name: str, episodes: int) -> list[np.random.See
 
 def run_cell(cell: Cell) -> list[dict]:
     """The rows of one cell (runs anywhere: a pure function of the cell)."""
-    from marlmerge.cotrain import load_highway_policy
+    from marlmerge.learned_highway import load_highway_policy
 
     scen = resolve_config(cell.condition.preset)
     policy = make_policy(cell.policy, cell.run, scen)

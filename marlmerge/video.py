@@ -87,7 +87,7 @@ def render_episodes(
     policy = policy_from_spec(policy_spec, cfg)
     highway_policy = None
     if highway is not None:
-        from marlmerge.cotrain import load_highway_policy
+        from marlmerge.learned_highway import load_highway_policy
 
         highway_policy = load_highway_policy(highway)
     frames, outcomes = record_episodes(policy, cfg, episodes, seed, view, highway_policy)

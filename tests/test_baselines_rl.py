@@ -10,13 +10,12 @@ from marlmerge import files
 from marlmerge.learners.baselines_rl import (
     DQNLearner,
     EpsilonGreedy,
-    LearnerPolicy,
     TD3Learner,
     dqn_action_levels,
     load_policy,
 )
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
-from marlmerge.train import TrainConfig, load_train_config, train
+from marlmerge.train import Td3Config, TrainConfig, load_train_config, train
 
 LO, HI = -4.5, 2.5
 
@@ -70,7 +69,7 @@ def test_tiny_run_end_to_end_and_load_policy(tmp_path, algorithm):
     ev = json.loads((tmp_path / "evaluation.json").read_text())
     assert ev["episodes"] == 4
     saved = files.load(tmp_path / "checkpoint.pt")
-    assert saved["algorithm"] == algorithm and "learner" in saved
+    assert saved["algorithm"] == algorithm and "learner" in saved["group"]
 
     policy = load_policy(tmp_path)  # a run folder or its policy.pt
     obs = torch.rand(16, 7, generator=torch.Generator().manual_seed(1)) * 2
@@ -79,7 +78,7 @@ def test_tiny_run_end_to_end_and_load_policy(tmp_path, algorithm):
     assert (action >= LO).all() and (action <= HI).all()
     assert not action.requires_grad
     if algorithm == "dqn":  # only the levels can come out
-        levels = dqn_action_levels(cfg.dqn_levels, LO, HI)
+        levels = dqn_action_levels(cfg.dqn.levels, LO, HI)
         assert torch.isin(action, levels).all()
 
 
@@ -98,8 +97,8 @@ def test_killed_run_resumes_bit_exact(tmp_path, algorithm):
     wa = files.load(tmp_path / "a" / "policy.pt")["policy_state"]["net"]
     wb = files.load(tmp_path / "b" / "policy.pt")["policy_state"]["net"]
     assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-    ca = files.load(tmp_path / "a" / "checkpoint.pt")["learner"]["loss"]
-    cb = files.load(tmp_path / "b" / "checkpoint.pt")["learner"]["loss"]
+    ca = files.load(tmp_path / "a" / "checkpoint.pt")["group"]["learner"]["loss"]
+    cb = files.load(tmp_path / "b" / "checkpoint.pt")["group"]["learner"]["loss"]
     assert all(torch.equal(ca[k], cb[k]) for k in ca)  # online and target networks
 
 
@@ -117,8 +116,13 @@ def test_dqn_levels_map_to_accelerations():
     q = learner.q_mlp(obs)
     assert torch.equal(learner.greedy(obs), levels[q.argmax(-1)].unsqueeze(-1))
     # exploring (epsilon = 1): the env gets levels[index], the replay keeps the index
-    policy = LearnerPolicy(learner, torch.Generator().manual_seed(0))
     from tensordict import TensorDict
+
+    from marlmerge.training.loop import GroupPolicy, LearningGroup
+
+    gen = torch.Generator().manual_seed(0)
+    group = LearningGroup("ego", learner, None, gen, gen, 1.0, 32, 0, 5)  # type: ignore[arg-type]
+    policy = GroupPolicy(group)
 
     td = policy(TensorDict({"observation": obs}, batch_size=[64]))
     index = td["action_index"]
@@ -201,8 +205,23 @@ def test_load_policy_reads_quadq_policies(tmp_path):
 def test_bad_algorithm_is_rejected_by_name():
     with pytest.raises(ValueError, match="'ppo'"):
         TrainConfig(algorithm="ppo")
-    with pytest.raises(ValueError, match="td3_policy_delay"):
-        TrainConfig(algorithm="td3", td3_policy_delay=0)
+    with pytest.raises(ValueError, match="td3.policy_delay"):
+        TrainConfig(algorithm="td3", td3=Td3Config(policy_delay=0))
+
+
+def test_algorithm_tables_take_dotted_overrides_and_old_flat_keys_say_where_they_went(tmp_path):
+    cfg = load_train_config("dqn", **{"dqn.levels": 9, "td3.tau": 0.01})
+    assert cfg.dqn.levels == 9 and cfg.td3.tau == 0.01 and cfg.dqn.double is False
+    with pytest.raises(ValueError, match="'dqn_levels' is now 'dqn.levels'"):
+        load_train_config("dqn", dqn_levels=9)
+    old = tmp_path / "old.toml"
+    old.write_text('kind = "train"\nalgorithm = "td3"\ntd3_tau = 0.01\n')
+    with pytest.raises(ValueError, match=r"old.toml: .*'td3_tau' is now 'td3.tau'"):
+        load_train_config(old)
+    with pytest.raises(ValueError, match="dqn.levels"):
+        load_train_config("dqn", **{"dqn.levels": 1})
+    with pytest.raises(ValueError, match="unknown config key 'dqn.level'"):
+        load_train_config("dqn", **{"dqn.level": 3})
 
 
 def test_presets():

@@ -54,8 +54,8 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
     ]
     ckpt = files.load(tmp_path / "checkpoint.pt")
     for group in ("ego", "highway"):  # weights, target, optimiser and replay of both groups
-        state = ckpt[group]
-        assert state["updates"] > 0 and state["optimizer"] is not None
+        state = ckpt[group]["learner"]
+        assert ckpt[group]["updates"] > 0 and state["optimizer"] is not None
         assert any("target" in k for k in state["loss"])
     logged = set(_phases_logged(tmp_path / "highway.csv"))
     assert logged == {"pretrain", "adversary", "ego"}
@@ -113,6 +113,13 @@ def test_a_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     for k in ha:
         assert torch.equal(ha[k], hb[k]), k
     assert (full / "egos.csv").read_text() == (cut / "egos.csv").read_text()
+    # resuming the finished run changes nothing and says so
+    before = {p.name: p.read_bytes() for p in cut.glob("*") if p.is_file()}
+    again = cotrain(cfg, cut, resume=True, progress=False)
+    assert again.already_finished and again.evaluation == json.loads(before["evaluation.json"])
+    assert {p.name: p.read_bytes() for p in cut.glob("*") if p.is_file()} == before
+    with pytest.raises(ValueError, match="other values of seed"):
+        cotrain(_tiny(rounds=1, seed=5), cut, resume=True, progress=False)
 
 
 def test_bad_config_and_cli_errors_name_the_value(tmp_path, capsys):

@@ -190,7 +190,7 @@ def test_tensorboard_gets_each_loss_and_each_ego_once(tmp_path, monkeypatch):
     import marlmerge.train as training
 
     board = _Board()
-    monkeypatch.setattr(training, "_tensorboard", lambda out: board)
+    monkeypatch.setattr(training, "tensorboard", lambda out: board)
     result = train(TrainConfig(**{**TINY, "eval_episodes": 0}), tmp_path, progress=False)
     by_tag = {}
     for tag, value, step in board.points:

@@ -61,7 +61,6 @@ __all__ = [
     "DQNLearner",
     "EpsilonGreedy",
     "GlobalRngStream",
-    "LearnerPolicy",
     "ScaledTanh",
     "TD3Learner",
     "TwinInputQNet",
@@ -395,11 +394,12 @@ class DQNLearner(BaselineLearner):
         exploration: EpsilonGreedy,
         seed: int = 0,
         compile: bool = False,
+        obs_dim: int = OBS_DIM,
     ) -> None:
         self.levels = levels.to(torch.float32)  # [n]
         self.hidden = hidden
         self.layers = layers
-        self.qnet = make_dqn_qnet(len(levels), hidden, layers, seed=seed)
+        self.qnet = make_dqn_qnet(len(levels), hidden, layers, obs_dim=obs_dim, seed=seed)
         self.q_mlp: nn.Module = self.qnet.module[0].module  # the plain MLP, for fast acting
         self.loss = make_dqn_loss(self.qnet, gamma=gamma, double_dqn=double_dqn)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
@@ -503,13 +503,14 @@ class TD3Learner(BaselineLearner):
         exploration: GaussianExploration,
         seed: int = 0,
         compile: bool = False,
+        obs_dim: int = OBS_DIM,
     ) -> None:
         self.low, self.high = float(low), float(high)
         self.hidden = hidden
         self.layers = layers
-        self.actor = make_td3_actor(low, high, hidden, layers, seed=seed)
+        self.actor = make_td3_actor(low, high, hidden, layers, obs_dim=obs_dim, seed=seed)
         self.actor_net: nn.Module = self.actor.module  # MLP + ScaledTanh, for fast acting
-        qnet = make_td3_qnet(low, high, hidden, layers, seed=seed + 1)
+        qnet = make_td3_qnet(low, high, hidden, layers, obs_dim=obs_dim, seed=seed + 1)
         self.loss = make_td3_loss(
             self.actor,
             qnet,
@@ -613,8 +614,9 @@ class TD3Learner(BaselineLearner):
         }
 
 
-def make_learner(cfg: Any, low: float, high: float) -> BaselineLearner:
-    """The learner for ``cfg.algorithm`` (``"dqn"`` or ``"td3"``) from a ``TrainConfig``.
+def make_learner(cfg: Any, low: float, high: float, obs_dim: int = OBS_DIM) -> BaselineLearner:
+    """The learner for ``cfg.algorithm`` (``"dqn"`` or ``"td3"``) from a ``TrainConfig`` (its
+    ``[dqn]`` / ``[td3]`` table and the shared settings).
 
     ``cfg.update_path == "compiled"`` wraps the gradient steps in ``torch.compile`` (any other
     path runs them eagerly: "fast" and "torchrl" only mean something for quadq). Exploration
@@ -624,53 +626,40 @@ def make_learner(cfg: Any, low: float, high: float) -> BaselineLearner:
     decay = max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1)
     compile = cfg.update_path == "compiled"
     if cfg.algorithm == "dqn":
-        levels = dqn_action_levels(cfg.dqn_levels, low, high)
+        dqn = cfg.dqn
+        levels = dqn_action_levels(dqn.levels, low, high)
         return DQNLearner(
             levels,
             hidden=cfg.hidden,
-            layers=cfg.mlp_hidden_layers,
+            layers=dqn.hidden_layers,
             gamma=cfg.gamma,
             lr=cfg.lr,
             target_update_period=cfg.target_update_period,
-            double_dqn=cfg.dqn_double,
-            exploration=EpsilonGreedy(cfg.epsilon_start, cfg.epsilon_end, decay, len(levels)),
+            double_dqn=dqn.double,
+            exploration=EpsilonGreedy(dqn.epsilon_start, dqn.epsilon_end, decay, len(levels)),
             seed=cfg.seed,
             compile=compile,
+            obs_dim=obs_dim,
         )
     if cfg.algorithm == "td3":
+        td3 = cfg.td3
         return TD3Learner(
             low,
             high,
             hidden=cfg.hidden,
-            layers=cfg.mlp_hidden_layers,
+            layers=td3.hidden_layers,
             gamma=cfg.gamma,
             lr=cfg.lr,
-            tau=cfg.td3_tau,
-            policy_delay=cfg.td3_policy_delay,
-            policy_noise=cfg.td3_target_noise,
-            noise_clip=cfg.td3_target_noise_clip,
+            tau=td3.tau,
+            policy_delay=td3.policy_delay,
+            policy_noise=td3.target_noise,
+            noise_clip=td3.target_noise_clip,
             exploration=GaussianExploration(cfg.sigma_start, cfg.sigma_end, decay, low, high),
             seed=cfg.seed,
             compile=compile,
+            obs_dim=obs_dim,
         )
     raise ValueError(f"make_learner: unknown algorithm {cfg.algorithm!r} (one of dqn, td3)")
-
-
-class LearnerPolicy:
-    """Collector policy around any :class:`~marlmerge.learners.base.Learner`: writes ``action``
-    [B, 1] (m/s^2) and, for DQN, ``action_index`` [B]; explores with ``generator``."""
-
-    def __init__(self, learner: Learner, generator: torch.Generator) -> None:
-        self.learner = learner
-        self.generator = generator
-        self.sim_step = 0
-
-    @torch.no_grad()
-    def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        out = self.learner.act(td.get("observation"), self.sim_step, self.generator)
-        for key, value in out.items():
-            td.set(key, value)
-        return td
 
 
 # ----------------------------------------------------------------------------------------------

@@ -35,6 +35,7 @@ class QuadQLearner(Learner):
             or "torchrl" (the plain LossModule loop).
         updates_per_call: updates per fast-path call (must divide the target period).
         seed: initialises the networks; sample_generator: draws the minibatches.
+        init_weights: start from these network weights (a trained policy's `net`) instead.
     """
 
     algorithm = "quadq"
@@ -54,10 +55,13 @@ class QuadQLearner(Learner):
         updates_per_call: int,
         seed: int,
         sample_generator: torch.Generator,
+        init_weights: Mapping[str, Tensor] | None = None,
     ) -> None:
         init = torch.Generator().manual_seed(seed)
         self.obs_dim, self.hidden = obs_dim, hidden
         self.net = QuadraticQNet(obs_dim, hidden, action_low=low, action_high=high, generator=init)
+        if init_weights is not None:  # before the loss module copies them into its target
+            self.net.load_state_dict(init_weights)
         self.loss_module = QuadraticQLoss(self.net, gamma=gamma)
         self.exploration = exploration
         self.update_path = update_path
