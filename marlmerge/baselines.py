@@ -1,5 +1,6 @@
-"""Rule-based ramp-vehicle baselines on the ego observation (scaled `[..., 7]` in, acceleration
-`[..., 1]` in m/s^2 out), interchangeable with a learned ego policy.
+"""Rule-based ramp-vehicle baselines on the ego observation (scaled `[..., F]` in, any layout:
+they read the paper's 7 features; acceleration `[..., 1]` in m/s^2 out), interchangeable with a
+learned ego policy.
 
 - `GapAcceptancePolicy`: the classic gap-acceptance merger (critical lead and lag gaps).
 - `IdmEgoPolicy` (from `marlmerge.policies`): ignores the merge; the lower bound.
@@ -161,11 +162,13 @@ class GapAcceptancePolicy:
         return lead, lag
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """obs: [..., 7] scaled ego observation -> [..., 1] acceleration (m/s^2), within bounds."""
+        """obs: [..., F] scaled ego observation (any layout: it reads the paper's features, the
+        first 7) -> [..., 1] acceleration (m/s^2), within bounds."""
         cfg = self.cfg
         lo, hi = cfg.ego.accel_bounds_mps2
         # junk values (nan, inf) become finite, so the answer stays inside the bounds
-        obs = np.nan_to_num(np.asarray(obs, dtype=np.float64), nan=0.0, posinf=1e3, neginf=-1e3)
+        obs = np.asarray(obs, dtype=np.float64)[..., : len(EGO_FEATURES)]
+        obs = np.nan_to_num(obs, nan=0.0, posinf=1e3, neginf=-1e3)
         raw = obs * EGO_SCALE
         col = {k: raw[..., i][..., None] for k, i in _E.items()}  # each [..., 1]
         v = np.maximum(col["ego_speed"], 0.0)

@@ -9,7 +9,8 @@ torchrl's partial reset (`"_reset"` mask): the next ramp vehicle departs into th
 traffic.
 
 Keys (all with leading dim B):
-    "observation" [B, 7]   the paper's state, layout in `marlmerge.spec.observation.EGO_FEATURES`
+    "observation" [B, F]   the ego's observation: F = 7 (the paper's state) or 16
+                           (`ego.observation = "extended"`), `marlmerge.spec.observation`
     "action"      [B, 1]   acceleration in m/s^2, clipped to the ego bounds; NaN raises
     "reward"      [B, 1]   sum of the named terms over the env step
     "reward_terms", <term> [B, 1] each named term (`marlmerge.spec.reward.EGO_TERMS`)
@@ -17,6 +18,8 @@ Keys (all with leading dim B):
     "ego_time_s"  [B, 1]   time since the ego departed (frozen once its episode ended)
     "done" / "terminated" / "truncated" [B, 1]: terminated on success or collision, truncated when
                            stalled or out of time.
+    "filter_interventions" [B, 1] int64, only with `ego.safety_filter`: simulator steps of the
+                           ego's episode whose command the safety filter overrode.
 """
 
 from __future__ import annotations
@@ -41,7 +44,6 @@ from marlmerge.sim import (
     Roster,
     TrafficCore,
 )
-from marlmerge.spec.observation import EGO_FEATURES
 from marlmerge.spec.reward import EGO_TERMS
 
 
@@ -69,7 +71,7 @@ class BatchedMergeEnv(EnvBase):
         b = num_worlds
         lo, hi = self.cfg.ego.accel_bounds_mps2
         self.observation_spec = Composite(
-            observation=Unbounded((b, len(EGO_FEATURES)), dtype=torch.float32, device=device),
+            observation=Unbounded((b, self.core.obs_size), dtype=torch.float32, device=device),
             reward_terms=Composite(
                 {t: Unbounded((b, 1), dtype=torch.float32, device=device) for t in EGO_TERMS},
                 shape=(b,),
@@ -80,6 +82,10 @@ class BatchedMergeEnv(EnvBase):
             shape=(b,),
             device=device,
         )
+        if self.cfg.ego.safety_filter:
+            self.observation_spec["filter_interventions"] = Unbounded(
+                (b, 1), dtype=torch.int64, device=device
+            )
         self.action_spec = Bounded(lo, hi, (b, 1), dtype=torch.float32, device=device)
         self.reward_spec = Unbounded((b, 1), dtype=torch.float32, device=device)
         self.full_done_spec = Composite(
@@ -149,7 +155,8 @@ class BatchedMergeEnv(EnvBase):
     def _output(
         self, ego_obs: np.ndarray, terms: np.ndarray, outcome: np.ndarray
     ) -> TensorDictBase:
-        """The root keys from a step's observations [B, 7], summed terms [B, 5] and outcomes."""
+        """The root keys from a step's observations [B, F], summed terms [B, len(EGO_TERMS)] and
+        outcomes."""
         b = self.num_worlds
         dev = self.device
 
@@ -158,7 +165,7 @@ class BatchedMergeEnv(EnvBase):
 
         terminated = (outcome == OUTCOME_SUCCESS) | (outcome == OUTCOME_COLLISION)
         truncated = outcome == OUTCOME_TRUNCATED
-        return TensorDict(
+        out = TensorDict(
             {
                 "observation": torch.as_tensor(ego_obs, device=dev),
                 "reward": col(terms.sum(axis=1)),
@@ -174,3 +181,8 @@ class BatchedMergeEnv(EnvBase):
             batch_size=[b],
             device=dev,
         )
+        if self.cfg.ego.safety_filter:
+            out["filter_interventions"] = col(
+                self.core.state.filter_interventions.copy(), torch.int64
+            )
+        return out

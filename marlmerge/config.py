@@ -33,6 +33,10 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 MPH_TO_MPS = 0.44704
+OBSERVATION_LAYOUTS = ("paper", "extended")
+"""Values of `ego.observation` (the tables: `marlmerge.spec.observation.EGO_LAYOUTS`)."""
+MAX_LATENCY_S = 2.0
+"""`sensing.latency_s` is at most this (the core keeps that many steps of observations)."""
 
 
 @dataclass(frozen=True)
@@ -178,6 +182,50 @@ class EgoConfig:
     stall_speed_mps: float = 0.5
     stall_time_s: float = 10.0
     """Truncation: slower than `stall_speed_mps` for this long."""
+    observation: str = "paper"
+    """The ego's observation layout: "paper" (the paper's 7 features) or "extended" (those, then
+    the vehicle alongside, the nearest left-lane vehicles and the times to the join and merge
+    points; `marlmerge.spec.observation`)."""
+    time_to_merge_cap_s: float = 10.0
+    """The extended layout's times to the join and merge points are at most this."""
+    safety_filter: bool = False
+    """Override the ego's command so that it does not join the right lane into an occupied or
+    too short gap (`marlmerge.sim.safety`): it holds behind the join point or drops back."""
+    safety_min_headway_s: float = 1.0
+    """Safety filter: a join needs at least this time headway of the new follower behind the ego
+    and of the ego behind its new leader."""
+    safety_min_gap_m: float = 2.0
+    """Safety filter: ... and at least this bumper gap to both."""
+
+
+@dataclass(frozen=True)
+class SensingConfig:
+    """Imperfect sensing of the ego's observation (all off by default: perfect sensing).
+
+    Noise is drawn per measured vehicle from each world's own seeded generator
+    (`marlmerge.sim.streams`) and applies to the features whose `Feature.noise` names it. Latency
+    delays the whole observation by `latency_s` (a multiple of `sim.dt_s`). Occlusion hides a
+    left-lane vehicle whose line of sight from the ego crosses a right-lane vehicle's body
+    (`marlmerge.sim.sensing`). Only what the ego's policy sees changes; reward, metrics and the
+    dynamics use the true state."""
+
+    position_noise_std_m: float = 0.0
+    """Standard deviation of the Gaussian error of a measured vehicle's position."""
+    speed_noise_std_mps: float = 0.0
+    """Standard deviation of the Gaussian error of a measured vehicle's speed."""
+    latency_s: float = 0.0
+    """The ego sees the observation measured this long ago (a multiple of `sim.dt_s`)."""
+    occlusion: bool = False
+    """Left-lane vehicles hidden behind a right-lane vehicle are reported as missing."""
+
+    @property
+    def noisy(self) -> bool:
+        return self.position_noise_std_m > 0.0 or self.speed_noise_std_mps > 0.0
+
+    @property
+    def active(self) -> bool:
+        """Any imperfection on: the core then measures the observation every simulator step."""
+        return self.noisy or self.latency_s > 0.0 or self.occlusion
 
 
 @dataclass(frozen=True)
@@ -189,7 +237,10 @@ class RewardConfig:
     `gap_back`:     -w_back  * g(d_back,  safe_back)    safe = min_gap + headway * speed
     `speed`:        -w_speed * polygon(v)   0 inside [v_low, v_limit], linear outside (eq. 6)
     `collision`:    -collision_penalty once, on the step the ego collides (not in the paper).
-    Distance terms count only inside the merge area (from `distance_active_from_m` on).
+    `back_headway`: -w_back_headway * g(d_back, back_headway_s * v_back)       (off by default)
+    `back_ttc`:     -w_back_ttc * g(d_back, back_ttc_s * max(v_back - v, 0))   (off by default)
+    Distance terms count only inside the merge area (from `distance_active_from_m` on); the two
+    follower terms only for a gap-back vehicle within the sensing range.
     """
 
     w_accel: float = 0.05
@@ -213,6 +264,15 @@ class RewardConfig:
     the limit, (v - v_limit) / speed_over_scale_mps above it). A mainline driver wants to drive
     at the limit (no dead band as the ramp vehicle has): a learned one that stops to block the
     merge, or races at 40 m/s to deny a gap, pays for every second of it."""
+    w_back_headway: float = 0.0
+    """`back_headway` (the follower's view, off by default): -w_back_headway *
+    g(d_back, back_headway_s * v_back), i.e. a penalty while the gap-back vehicle's time headway
+    to the ego is below `back_headway_s`."""
+    back_headway_s: float = 1.0
+    w_back_ttc: float = 0.0
+    """`back_ttc` (off by default): -w_back_ttc * g(d_back, back_ttc_s * (v_back - v)), a penalty
+    while the gap-back vehicle's time-to-collision with the ego is below `back_ttc_s`."""
+    back_ttc_s: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -285,6 +345,7 @@ class ScenarioConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     interaction: InteractionConfig = field(default_factory=InteractionConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    sensing: SensingConfig = field(default_factory=SensingConfig)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -475,7 +536,10 @@ SCENARIO_RULES = {
             "ego.sensing_range_m",
             "ego.max_episode_s",
             "ego.stall_time_s",
+            "ego.time_to_merge_cap_s",
             "reward.speed_over_scale_mps",
+            "reward.back_headway_s",
+            "reward.back_ttc_s",
             "interaction.hard_brake_mps2",
             "sim.dt_s",
         ],
@@ -491,6 +555,8 @@ SCENARIO_RULES = {
             "traffic.warmup_s",
             "ego.start_speed_mps",
             "ego.stall_speed_mps",
+            "ego.safety_min_headway_s",
+            "ego.safety_min_gap_m",
             "reward.w_accel",
             "reward.w_front",
             "reward.w_back",
@@ -499,6 +565,8 @@ SCENARIO_RULES = {
             "reward.safe_min_gap_m",
             "reward.collision_penalty",
             "reward.w_highway_speed",
+            "reward.w_back_headway",
+            "reward.w_back_ttc",
             "interaction.w_ego_collision",
             "interaction.w_ego_hard_brake_per_s",
             "interaction.w_ego_stall",
@@ -506,6 +574,9 @@ SCENARIO_RULES = {
             "interaction.own_collision_penalty",
             "interaction.cut_in_grace_s",
             "sim.n_highway_agents",
+            "sensing.position_noise_std_m",
+            "sensing.speed_noise_std_mps",
+            "sensing.latency_s",
         ],
         ">=0",
     ),
@@ -583,7 +654,32 @@ def validate(cfg: ScenarioConfig) -> None:
             math.isclose(sum(d.mix), 1.0, abs_tol=1e-6),  # each share in [0, 1]: the rules
             f"driver.mix_* must sum to 1, got {d.mix}",
         ),
+        (
+            e.observation in OBSERVATION_LAYOUTS,
+            f"ego.observation must be one of {', '.join(map(repr, OBSERVATION_LAYOUTS))}, "
+            f"got {e.observation!r}",
+        ),
+        *_sensing_checks(cfg),
     ]
     for ok, msg in checks:
         if not ok:
             raise ValueError(msg)
+
+
+def latency_steps(cfg: ScenarioConfig) -> int:
+    """`sensing.latency_s` in simulator steps."""
+    return int(round(cfg.sensing.latency_s / cfg.sim.dt_s))
+
+
+def _sensing_checks(cfg: ScenarioConfig) -> list[tuple[bool, str]]:
+    lat, dt = cfg.sensing.latency_s, cfg.sim.dt_s
+    return [
+        (
+            lat <= MAX_LATENCY_S,
+            f"sensing.latency_s must be <= {MAX_LATENCY_S:g} s, got {lat}",
+        ),
+        (
+            abs(lat / dt - round(lat / dt)) < 1e-6,
+            f"sensing.latency_s must be a multiple of sim.dt_s ({dt}), got {lat}",
+        ),
+    ]

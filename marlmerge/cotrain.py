@@ -4,7 +4,8 @@ Two agent groups learn with the paper's quadratic-Q learner (`QuadQLearner`), ea
 `LearningGroup` of `marlmerge.training.loop` with its own network, loss, optimiser and target,
 torchrl `ReplayBuffer` and seeded generators, trained by the one loop (`run_loop`) once per phase:
 
-- `"ego"`: the ramp vehicle (observation [B, 7], acceleration in the ego bounds);
+- `"ego"`: the ramp vehicle (observation [B, d]: 7 features, 16 in the extended layout;
+  acceleration in the ego bounds);
 - `"highway"`: one policy shared by the K highway agents of every world (observation [B, K, 12],
   acceleration in the vehicle limits); only agents that act (mask) give transitions, an agent that
   leaves the road ends its own episode (terminal), the end of the merge truncates it.
@@ -71,7 +72,7 @@ from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
 from marlmerge.policy_file import read_policy, write_policy
 from marlmerge.sim import OUTCOME_NAMES
-from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import INTERACTION_TERMS, LEARNED_HIGHWAY_TERMS
 from marlmerge.training.config import RUN_RULES, RunConfig
 from marlmerge.training.logs import CsvLog, progress_bar
@@ -190,7 +191,7 @@ def load_cotrain_config(path: str | Path, **overrides: Any) -> CoTrainConfig:
 class JointPolicy:
     """Sets the ego's `"action"` and the highway group's `("highway", "action")`.
 
-    ego(obs [B, 7]) -> [B, 1]; highway[o](obs [n, K, 12]) -> [n, K, 1] for the worlds whose
+    ego(obs [B, d]) -> [B, 1]; highway[o](obs [n, K, 12]) -> [n, K, 1] for the worlds whose
     `"opponent"` is o (worlds with -1 are scripted: their actions are ignored, zeros are sent).
     """
 
@@ -415,7 +416,7 @@ class CoTrainRun:
         self.scen = scen = self.env.cfg
         self.k = scen.sim.action_repeat
         self.ego = make_group(
-            cfg, "ego", len(EGO_FEATURES), scen.ego.accel_bounds_mps2, cfg.seed * 1000 + 10,
+            cfg, "ego", ego_obs_size(scen), scen.ego.accel_bounds_mps2, cfg.seed * 1000 + 10,
             cfg.ego_updates_per_sim_step, ego_init_weights(cfg, scen),
         )  # fmt: skip
         self.hw = make_group(
@@ -678,7 +679,7 @@ def select_ego(
     ]
     failures: list[list[int]] = []
     for _, weights in candidates:
-        net = frozen_net(weights, len(EGO_FEATURES), cfg.hidden, scen.ego.accel_bounds_mps2)
+        net = frozen_net(weights, ego_obs_size(scen), cfg.hidden, scen.ego.accel_bounds_mps2)
         row = []
         for opp in opponents:
             r = evaluate_policy(

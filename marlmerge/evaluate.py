@@ -21,7 +21,7 @@ from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 from marlmerge.sim.streams import WorldSeed
 
 EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
-"""observation [B, 7] -> acceleration [B, 1] (m/s^2)."""
+"""observation [B, F] (the scenario's `ego.observation` layout) -> acceleration [B, 1] (m/s^2)."""
 HighwayPolicy = Callable[[torch.Tensor], torch.Tensor]
 """highway observation [B, K, 12] -> acceleration [B, K, 1] (m/s^2)."""
 
@@ -40,7 +40,8 @@ def rollout_first_egos(
     """Run the first ego of `episodes` fresh worlds to its end.
 
     Returns per-episode records (outcome code, time_s, total reward, mean |accel|, collisions
-    between mainline vehicles during the episode) and, with `record`, each episode's
+    between mainline vehicles during the episode, the safety filter's interventions: simulator
+    steps whose command it overrode, 0 with the filter off) and, with `record`, each episode's
     `EpisodeTrajectory` (simulator-step samples up to its end). With `highway_policy`, the K
     highway agents of every world (`MultiAgentMergeEnv`) are driven by it instead of their
     scripted profiles; the roads are the same either way. `road_seeds` (one per episode)
@@ -52,6 +53,7 @@ def rollout_first_egos(
         "reward": [],
         "mean_abs_accel": [],
         "background_collisions": [],
+        "filter_interventions": [],
     }
     traces: list[EpisodeTrajectory] = []
     lo, hi = scenario.ego.accel_bounds_mps2
@@ -75,6 +77,7 @@ def rollout_first_egos(
             recorder = TrajectoryRecorder(scenario, nw)
             env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
         outcome = np.zeros(nw, dtype=np.int64)
+        interventions = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
         while (outcome == 0).any():
             action = policy(td.get("observation")).reshape(nw, 1)
@@ -93,12 +96,14 @@ def rollout_first_egos(
             ended = running & (new != 0)
             outcome[ended] = new[ended]
             time_s[ended] = nxt.get("ego_time_s").reshape(nw).numpy()[ended]
+            interventions[ended] = env.core.state.filter_interventions[ended]
             td = nxt
         rec["outcome"].append(outcome)
         rec["time_s"].append(time_s)
         rec["reward"].append(reward)
         rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
         rec["background_collisions"].append(background)
+        rec["filter_interventions"].append(interventions)
         traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
 

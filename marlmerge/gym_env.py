@@ -8,10 +8,12 @@
 `RampMergeEnv` (one world) and `RampMergeVectorEnv` (B worlds of one batched core, not B copies
 of the single env) share one implementation, `_EgoWorlds`, over `TrafficCore.rollout`.
 
-Spaces: observation Box(7) float32 (the paper's state, `marlmerge.spec.observation.EGO_FEATURES`),
-action Box(1) in the ego's bounds (m/s^2, held for `sim.action_repeat` simulator steps).
+Spaces: observation Box(F) float32 (F = 7, the paper's state, or 16 with `ego.observation =
+"extended"`; `marlmerge.spec.observation`), action Box(1) in the ego's bounds (m/s^2, held for
+`sim.action_repeat` simulator steps).
 Reward: the sum of the named terms (`marlmerge.spec.reward.EGO_TERMS`); `info` holds each as
-`reward_<term>`, and `outcome` (0 running, 1 success, 2 collision, 3 truncated), `ego_time_s`.
+`reward_<term>`, and `outcome` (0 running, 1 success, 2 collision, 3 truncated), `ego_time_s`,
+and with `ego.safety_filter` `filter_interventions` (the filter's overrides in the episode).
 Episode: one ramp vehicle; terminated on success or collision, truncated when it stalls or runs
 out of time. `reset(seed=s)` builds a fresh road in steady flow; `reset()` sends the next ramp
 vehicle into the same flowing traffic.
@@ -39,7 +41,7 @@ from gymnasium import spaces
 from marlmerge.config import ScenarioConfig
 from marlmerge.pettingzoo_env import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED, TrafficCore
-from marlmerge.spec.observation import EGO_FEATURES
+from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import EGO_TERMS
 
 ENV_ID = "marlmerge/RampMerge-v1"
@@ -64,7 +66,7 @@ class _EgoWorlds:
         self.k = cfg.sim.n_highway_agents if highway_policy is not None else 0
         self.core = TrafficCore(cfg, batch_size=num_worlds, seed=seed)
         self.roster = self.core.make_roster(self.core.pick_roster(self.k))
-        self.hw_obs = np.zeros((num_worlds, self.k, 12), dtype=np.float32)
+        self.hw_obs = np.zeros((num_worlds, self.k, len(HIGHWAY_FEATURES)), dtype=np.float32)
 
     def new_rosters(self, rows: np.ndarray) -> None:
         fresh = self.core.make_roster(self.core.pick_roster(self.k))
@@ -74,11 +76,17 @@ class _EgoWorlds:
         ego_obs, self.hw_obs = self.core.observe(self.roster)
         return ego_obs
 
+    def interventions(self) -> np.ndarray | None:
+        """[B] the safety filter's overrides in each world's episode; None with the filter off."""
+        if not self.cfg.ego.safety_filter:
+            return None
+        return self.core.state.filter_interventions.copy()
+
     def step(
         self, action: np.ndarray, worlds: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """action [B] (in the worlds of the mask `worlds`, all if None) -> (obs [B, 7], terms
-        [B, 5], outcome [B], ego_time_s [B])."""
+        """action [B] (in the worlds of the mask `worlds`, all if None) -> (obs [B, F], terms
+        [B, len(EGO_TERMS)], outcome [B], ego_time_s [B])."""
         cmd = None
         if self.highway_policy is not None:
             act = np.asarray(self.highway_policy(self.hw_obs), dtype=np.float64)
@@ -91,7 +99,7 @@ class _EgoWorlds:
 def _spaces(cfg: ScenarioConfig) -> tuple[spaces.Box, spaces.Box]:
     lo, hi = cfg.ego.accel_bounds_mps2
     return (
-        spaces.Box(-np.inf, np.inf, (len(EGO_FEATURES),), np.float32),
+        spaces.Box(-np.inf, np.inf, (ego_obs_size(cfg),), np.float32),
         spaces.Box(np.float32(lo), np.float32(hi), (1,), np.float32),
     )
 
@@ -107,10 +115,18 @@ def _check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def _infos(terms: np.ndarray, outcome: np.ndarray, time_s: np.ndarray) -> dict[str, np.ndarray]:
+def _infos(
+    terms: np.ndarray,
+    outcome: np.ndarray,
+    time_s: np.ndarray,
+    interventions: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Per-world infos [B] each; `filter_interventions` only when given (the filter is on)."""
     info = {f"reward_{t}": terms[:, i] for i, t in enumerate(EGO_TERMS)}
     info["outcome"] = outcome.astype(np.int64)
     info["ego_time_s"] = time_s
+    if interventions is not None:
+        info["filter_interventions"] = interventions.astype(np.int64)
     return info
 
 
@@ -149,7 +165,8 @@ class RampMergeEnv(gymnasium.Env):
         self._worlds.new_rosters(np.ones(1, dtype=bool))
         obs = self._worlds.observe()[0]
         zeros = np.zeros((1, len(EGO_TERMS)))
-        info = {k: v[0] for k, v in _infos(zeros, np.zeros(1), np.zeros(1)).items()}
+        infos = _infos(zeros, np.zeros(1), np.zeros(1), self._worlds.interventions())
+        info = {k: v[0] for k, v in infos.items()}
         self._render_human()
         return obs, info
 
@@ -160,7 +177,8 @@ class RampMergeEnv(gymnasium.Env):
         o = int(outcome[0])
         terminated = o in (OUTCOME_SUCCESS, OUTCOME_COLLISION)
         truncated = o == OUTCOME_TRUNCATED
-        info = {k: v[0] for k, v in _infos(terms, outcome, t).items()}
+        infos = _infos(terms, outcome, t, self._worlds.interventions())
+        info = {k: v[0] for k, v in infos.items()}
         self._render_human()
         return obs[0], float(terms[0].sum()), terminated, truncated, info
 
@@ -249,7 +267,7 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
         self._done[:] = False
         b = self.num_envs
         return self._worlds.observe(), _infos(
-            np.zeros((b, len(EGO_TERMS))), np.zeros(b), np.zeros(b)
+            np.zeros((b, len(EGO_TERMS))), np.zeros(b), np.zeros(b), self._worlds.interventions()
         )
 
     def step(self, actions):
@@ -266,7 +284,8 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
         terminated = (outcome == OUTCOME_SUCCESS) | (outcome == OUTCOME_COLLISION)
         truncated = outcome == OUTCOME_TRUNCATED
         self._done = terminated | truncated
-        return obs, terms.sum(axis=1), terminated, truncated, _infos(terms, outcome, t)
+        infos = _infos(terms, outcome, t, self._worlds.interventions())
+        return obs, terms.sum(axis=1), terminated, truncated, infos
 
     @property
     def core(self) -> TrafficCore:

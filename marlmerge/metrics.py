@@ -45,6 +45,7 @@ class EpisodeTrajectory:
     outcome: int  # marlmerge.sim OUTCOME_* code
     zone_start_m: float  # TTC and conflict metrics count from here (merge-zone start, -100 m)
     t0_s: float = 0.0  # time of sample 0 after the ego departed; sample k is at t0_s + k * dt_s
+    filter_interventions: int = 0  # simulator steps whose command the safety filter overrode
 
     def __len__(self) -> int:
         return int(np.asarray(self.x_m).shape[0])
@@ -282,8 +283,16 @@ class TrajectoryRecorder:
                         outcome=int(out.ego_outcome[b]),
                         zone_start_m=self.zone_start_m,
                         t0_s=self.dt_s,
+                        filter_interventions=_interventions(out, b),
                     ),
                 )
             )
             self._len[b] = 0
         return done
+
+
+def _interventions(out: Rollout, b: int) -> int:
+    """The safety filter's overrides in world `b`'s episode that ended in `out` (0 if none)."""
+    if out.filter_interventions is None:
+        return 0
+    return int(out.filter_interventions[b])

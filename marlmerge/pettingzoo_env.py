@@ -19,8 +19,9 @@ Actions
     highway agents keep their lane.
 
 Observations
-    Box float32, scaled; layouts in `marlmerge.spec.observation` (`EGO_FEATURES`,
-    `HIGHWAY_FEATURES`).
+    Box float32, scaled; layouts in `marlmerge.spec.observation` (the ego's by `ego.observation`:
+    `EGO_FEATURES` or `EGO_EXTENDED_FEATURES`; `HIGHWAY_FEATURES`). Imperfect sensing
+    (`[sensing]`) changes what `ramp_0` sees, never the rewards.
 
 Rewards
     Sums over the env step of the per-simulator-step terms of `marlmerge.spec.reward`: the ego's
@@ -32,8 +33,9 @@ Infos
     Flat and numeric, with the same keys at `reset` and at every step (so torchrl's PettingZoo
     wrapper can carry them): `reward_<term>` for each named reward term (`reward_terms(info)`
     collects them), and for `ramp_0` also `outcome` (0 running, 1 success, 2 collision,
-    3 truncated; names in `OUTCOME_NAMES`), `ego_time_s`, `ego_x_m`, `vehicle_id`; for highway
-    agents `vehicle_id` and `profile` (a `Profile` code).
+    3 truncated; names in `OUTCOME_NAMES`), `ego_time_s`, `ego_x_m`, `vehicle_id` and, with
+    `ego.safety_filter`, `filter_interventions` (simulator steps of the episode whose command the
+    safety filter overrode); for highway agents `vehicle_id` and `profile` (a `Profile` code).
 
 Episode end
     The episode is the ego's merge. `ramp_0` terminates on success or collision and is truncated
@@ -62,7 +64,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 from marlmerge.config import ScenarioConfig, load_scenario
 from marlmerge.presets import preset_dir
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
 EGO_AGENT = "ramp_0"
@@ -135,7 +137,7 @@ class RampMergeParallelEnv(ParallelEnv):
         hw_lo, hw_hi = self.cfg.sim.highway_agent_accel_bounds_mps2
         self._action_spaces = {EGO_AGENT: spaces.Box(lo, hi, (1,), np.float32)}
         self._observation_spaces = {
-            EGO_AGENT: spaces.Box(-np.inf, np.inf, (len(EGO_FEATURES),), np.float32)
+            EGO_AGENT: spaces.Box(-np.inf, np.inf, (ego_obs_size(self.cfg),), np.float32)
         }
         for a in self.possible_agents[1:]:
             self._action_spaces[a] = spaces.Box(hw_lo, hw_hi, (1,), np.float32)
@@ -190,6 +192,8 @@ class RampMergeParallelEnv(ParallelEnv):
         info["ego_time_s"] = float(st.ego_time_s[0])
         info["ego_x_m"] = float(st.x_m[0, EGO])
         info["vehicle_id"] = int(st.vehicle_id[0, EGO])
+        if self.cfg.ego.safety_filter:
+            info["filter_interventions"] = int(st.filter_interventions[0])
         return info
 
     def _highway_info(self, agent: str, terms: dict[str, float]) -> dict[str, float | int]:
@@ -291,7 +295,7 @@ class RampMergeParallelEnv(ParallelEnv):
     def _observations(
         self, agents: list[str], ego_obs: np.ndarray, hw_obs: np.ndarray
     ) -> dict[str, np.ndarray]:
-        """Per-agent observations from the core's [1, 7] and [1, K, 12] outputs."""
+        """Per-agent observations from the core's [1, F] and [1, K, 12] outputs."""
         obs = {EGO_AGENT: ego_obs[0]}
         for a in agents:
             if a != EGO_AGENT:

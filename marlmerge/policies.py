@@ -87,9 +87,10 @@ class IdmEgoPolicy:
         self.headway_s = float(np.mean(self.cfg.driver.time_headway_s))
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """obs: [..., 7] scaled ego observation -> [..., 1] acceleration in m/s^2."""
+        """obs: [..., F] scaled ego observation (any layout: it reads the paper's features, the
+        first 7) -> [..., 1] acceleration in m/s^2."""
         cfg = self.cfg
-        raw = np.asarray(obs, dtype=np.float64) * EGO_SCALE
+        raw = np.asarray(obs, dtype=np.float64)[..., : len(EGO_FEATURES)] * EGO_SCALE
         v, x = raw[..., _E["ego_speed"]], raw[..., _E["ego_position"]]
         x_f, v_f = raw[..., _E["front_position"]], raw[..., _E["front_speed"]]
         seen = x_f - x < cfg.ego.sensing_range_m - 1e-6

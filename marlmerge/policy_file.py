@@ -8,16 +8,17 @@ A policy file is a `marlmerge.files` file (tensors and plain data only, never co
     algorithm          "quadq", "dqn" or "td3" (ego); "quadq-residual" (highway: IDM plus a
                        learned adjustment)
     observation        {"features": [names], "size": n}: the layout the network reads
-                       (`marlmerge.spec.observation`)
+                       (`marlmerge.spec.observation`; an ego's is the layout of its scenario's
+                       `ego.observation`)
     action_bounds_mps2 [low, high]: what the network's greedy action is squashed into
     policy_state       the algorithm's tensors and sizes (`load_policy` rebuilds from them)
     config, scenario   the training config that made it and the scenario it trained on
 
 `write_policy` writes one, `read_policy` reads one back and checks it: a file of another group,
-of a newer version, or whose observation layout differs from this version's tables is an error
-naming the file. Files written by marlmerge 0.2 (no `format` key) are read as version 0: the
-ego's layout was the paper's state, its bounds the scenario's, a highway network's bounds the
-residual bounds it was trained with.
+of a newer version, or whose observation layout differs from this version's table for its
+scenario is an error naming the file. Files written by marlmerge 0.2 (no `format` key) are read
+as version 0: the ego's layout was the paper's state, its bounds the scenario's, a highway
+network's bounds the residual bounds it was trained with.
 """
 
 from __future__ import annotations
@@ -26,17 +27,25 @@ from pathlib import Path
 from typing import Any
 
 from marlmerge import files
-from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.spec.observation import EGO_FEATURES, EGO_LAYOUTS, HIGHWAY_FEATURES
 
 FORMAT = "marlmerge-policy"
 VERSION = 1
 GROUPS = {"ego": EGO_FEATURES, "highway": HIGHWAY_FEATURES}
+"""Each group's default layout (the ego's: the paper's state)."""
 DEFAULT_FILE = {"ego": "policy.pt", "highway": "highway_policy.pt"}
 V0_HIGHWAY_BOUNDS_MPS2 = (-3.0, 3.0)
 """The residual bounds every highway network of marlmerge 0.2 was trained with."""
 
 
-def feature_names(group: str) -> list[str]:
+def feature_names(group: str, scenario: dict[str, Any] | None = None) -> list[str]:
+    """The feature names a `group` network reads in `scenario` (a config dict; the ego's layout
+    is its `ego.observation`, "paper" when absent)."""
+    if group == "ego" and scenario is not None:
+        layout = scenario.get("ego", {}).get("observation", "paper")
+        if layout not in EGO_LAYOUTS:
+            raise ValueError(f"unknown ego observation layout {layout!r}")
+        return [f.name for f in EGO_LAYOUTS[layout]]
     return [f.name for f in GROUPS[group]]
 
 
@@ -50,7 +59,7 @@ def write_policy(
     scenario: dict[str, Any],
 ) -> None:
     """Write a policy file of `group` (see the module docstring)."""
-    names = feature_names(group)
+    names = feature_names(group, scenario)
     files.save(
         {
             "format": FORMAT,
@@ -85,7 +94,7 @@ def read_policy(path: str | Path, group: str) -> dict[str, Any]:
         )
     if saved["group"] != group:
         raise ValueError(f"{path}: a {saved['group']} policy, not a {group} policy")
-    names = feature_names(group)
+    names = feature_names(group, saved.get("scenario"))
     if list(saved["observation"]["features"]) != names:
         raise ValueError(
             f"{path}: trained on the observation {saved['observation']['features']}, but this "

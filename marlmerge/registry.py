@@ -1,5 +1,5 @@
 """One registry of ego policies: a spec on the command line, in the grid or a video becomes an
-`obs [B, 7] -> acceleration [B, 1]` function here, and nowhere else.
+`obs [B, F] -> acceleration [B, 1]` function here, and nowhere else.
 
 Specs:
 - `hold` (keep speed), `idm` (car following that ignores the merge), `gap` (gap acceptance);
@@ -62,7 +62,7 @@ def parse_policy(spec: str) -> PolicySpec:
 
 
 def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
-    """The obs [B, 7] -> action [B, 1] function of one policy (and one training run)."""
+    """The obs [B, F] -> action [B, 1] function of one policy (and one training run)."""
     if spec.kind in LEARNED_KINDS:
         from marlmerge.learners.baselines_rl import load_policy
 

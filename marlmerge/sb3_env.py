@@ -67,7 +67,7 @@ class MergeVecEnv(VecEnv):
         terminated = (outcome == OUTCOME_SUCCESS) | (outcome == OUTCOME_COLLISION)
         truncated = outcome == OUTCOME_TRUNCATED
         done = terminated | truncated
-        flat = _infos(terms, outcome, t)
+        flat = _infos(terms, outcome, t, self._worlds.interventions())
         infos: list[dict[str, Any]] = [
             {k: v[i] for k, v in flat.items()} for i in range(self.num_envs)
         ]

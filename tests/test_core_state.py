@@ -1,13 +1,11 @@
 """The core owns its state: checkpoints continue bit for bit; worlds do not depend on their batch,
 on threads, or on the compiler."""
 
-import os
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
 import pytest
+from scenes import same_with_and_without_jit
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.sim import TrafficCore
@@ -93,10 +91,4 @@ def test_same_trajectory_with_the_compiler_off(tmp_path):
             core.next_ego(out.ego_outcome != 0)
         np.save(__import__("sys").argv[1], np.stack(rows))
     """)
-    results = []
-    for disable in ("0", "1"):
-        path = tmp_path / f"jit_{disable}.npy"
-        env = dict(os.environ, NUMBA_DISABLE_JIT=disable)
-        subprocess.run([sys.executable, "-c", code, str(path)], env=env, check=True, timeout=600)
-        results.append(np.load(path))
-    assert np.array_equal(results[0], results[1])
+    assert same_with_and_without_jit(code, tmp_path)

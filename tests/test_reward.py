@@ -103,3 +103,50 @@ def test_blame_in_a_collision_with_the_ego():
     assert math.isclose(
         highway_step_terms(CFG, hit_ego=True, collided=True, ego_rear=True)["collision"], 0.0
     )
+
+
+FOLLOWER = CFG.replace(**{"reward.w_back_headway": 2.0, "reward.w_back_ttc": 3.0})
+
+
+def test_follower_terms_are_off_by_default():
+    t = ego_step_terms(CFG, 0.0, -20.0, 15.0, 50.0, 3.0, 28.0)  # a fast follower 3 m behind
+    assert t["back_headway"] == t["back_ttc"] == 0.0
+    assert tuple(t)[-2:] == ("back_headway", "back_ttc")
+
+
+def test_follower_terms_follow_their_formulas():
+    v, v_back, d_b = 15.0, 25.0, 5.0  # headway 0.2 s, time-to-collision 0.5 s
+    t = ego_step_terms(FOLLOWER, 0.0, -20.0, v, 50.0, d_b, v_back)
+    w = FOLLOWER.reward
+    g_hw = (1 - d_b / (w.back_headway_s * v_back)) ** 2
+    g_ttc = (1 - d_b / (w.back_ttc_s * (v_back - v))) ** 2
+    assert t["back_headway"] == pytest.approx(-w.w_back_headway * g_hw) and g_hw > 0
+    assert t["back_ttc"] == pytest.approx(-w.w_back_ttc * g_ttc) and g_ttc > 0
+
+
+@pytest.mark.parametrize(
+    ("v", "d_back", "v_back", "x"),
+    [
+        (15.0, 40.0, 25.0, -20.0),  # headway 1.6 s, time-to-collision 4 s: safe
+        (30.0, 5.0, 25.0, -20.0),  # 0.2 s behind but slower: headway only
+        (15.0, 5.0, 25.0, -200.0),  # far upstream: off
+        (15.0, 150.0, 29.06, -20.0),  # no gap-back vehicle: the virtual one at the range edge
+    ],
+)
+def test_follower_terms_are_zero_when_safe(v, d_back, v_back, x):
+    t = ego_step_terms(FOLLOWER, 0.0, x, v, 50.0, d_back, v_back)
+    assert t["back_ttc"] == 0.0
+    if d_back > 20.0 or x < -150.0:
+        assert t["back_headway"] == 0.0
+
+
+def test_follower_terms_in_a_hand_built_scene():
+    import numpy as np
+    from scenes import scene
+
+    over = {"reward.w_back_headway": 1.0, "reward.w_back_ttc": 1.0}
+    unsafe = scene((5.0, 15.0), right=[(-3.0, 27.0)], overrides=over).rollout(np.zeros(1), k=1)
+    safe = scene((5.0, 15.0), right=[(-60.0, 15.0)], overrides=over).rollout(np.zeros(1), k=1)
+    back_hw, back_ttc = 5, 6
+    assert unsafe.ego_terms[0, back_hw] < 0.0 and unsafe.ego_terms[0, back_ttc] < 0.0
+    assert safe.ego_terms[0, back_hw] == 0.0 and safe.ego_terms[0, back_ttc] == 0.0

@@ -21,17 +21,18 @@ from typing import Any
 import numba
 import numpy as np
 
-from marlmerge.config import ScenarioConfig, from_dict, to_dict
+from marlmerge.config import ScenarioConfig, from_dict, latency_steps, to_dict
 from marlmerge.sim import kernels
 from marlmerge.sim import layout as L
 from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
 from marlmerge.sim.state import EgoGaps, Rollout, Roster, StepEvents, TrafficState
 from marlmerge.sim.streams import CHUNK, Streams, world_seed_sequences
 from marlmerge.spec.observation import (
-    EGO_FEATURES,
     HIGHWAY_FEATURES,
     POSITION_SCALE_M,
     SPEED_SCALE_MPS,
+    TIME_SCALE_S,
+    ego_features,
 )
 from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
@@ -39,7 +40,11 @@ PARALLEL_MIN_WORLDS = 64
 """From this many worlds on, `rollout` runs worlds in parallel threads (same results)."""
 WARMUP_CHUNK_STEPS = 10
 """Warm-up runs in calls of this many steps (each call reserves slots for its arrivals)."""
-STATE_DICT_VERSION = 1
+STATE_DICT_VERSION = 2
+"""2: the sensor's arrays and the `wi` rows of sensing and the safety filter; version-1 states
+(no sensing) still load."""
+_ARRAYS = ("vf", "vi", "wf", "wi", "lanes", "sched", "ring", "noise")
+_ARRAYS_V1 = _ARRAYS[:6]
 _NO_AGENTS = np.zeros((1 << 16, 0), dtype=bool)
 _NO_AGENTS.flags.writeable = False
 
@@ -103,8 +108,12 @@ class TrafficCore:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.cfg = cfg
         self.batch_size = batch_size
-        self.params = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M)
+        self.params = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S)
         self.v_limit = cfg.road.speed_limit_mps
+        self.ego_features = ego_features(cfg)
+        """The ego's observation layout (`ego.observation`)."""
+        self.obs_size = len(self.ego_features)
+        self._ring_len = latency_steps(cfg) + 1 if cfg.sensing.active else 0
         self.parallel = batch_size >= PARALLEL_MIN_WORLDS if parallel is None else bool(parallel)
         self.streams = Streams(cfg, batch_size)
         self._allocate(initial_slots(cfg), 2 * CHUNK)
@@ -135,11 +144,24 @@ class TrafficCore:
         self.wi = np.zeros((b, L.WI_ROWS), dtype=np.int64)
         self.lanes = np.full((b, 2, n_slots), -1, dtype=np.int64)
         self.sched = np.zeros((b, 3, q_len, L.SC_COLS))
+        self._allocate_sensor()
+
+    def _allocate_sensor(self) -> None:
+        """The sensor's ring and drawn errors (empty when sensing is perfect / noise-free)."""
+        b = self.batch_size
+        self.ring = np.zeros((b * self._ring_len, self.obs_size))
+        noise_len = 2 * CHUNK if self.cfg.sensing.noisy else 0
+        self.noise = np.zeros((b, noise_len, L.NZ_COLS))
 
     @property
     def arrays(self) -> tuple[np.ndarray, ...]:
         """(vf, vi, wf, wi, lanes, sched): the state the kernels take as one argument."""
         return (self.vf, self.vi, self.wf, self.wi, self.lanes, self.sched)
+
+    @property
+    def sensor(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ring, noise): the ego sensor's state the kernels take as one argument."""
+        return (self.ring, self.noise)
 
     @property
     def n_slots(self) -> int:
@@ -207,8 +229,33 @@ class TrafficCore:
             while self.wi[b, L.WI_COUNT_RIGHT + EGO_STREAM] < 2:
                 self._reserve_ring(b, EGO_STREAM)
                 self._push(b, EGO_STREAM, self.streams.departures(b))
+            self._top_up_noise(b, k + 2)
             self.wi[b, L.WI_NEED] = 0
         self._served_k = k
+
+    def _top_up_noise(self, b: int, need: int) -> None:
+        """At least `need` drawn measurement errors in world `b`'s noise ring (noise on)."""
+        if not self.cfg.sensing.noisy:
+            return
+        q_len = self.noise.shape[1]
+        while self.wi[b, L.WI_NOISE_COUNT] < need:
+            count = int(self.wi[b, L.WI_NOISE_COUNT])
+            if count + CHUNK > q_len:
+                self._grow_noise(2 * q_len)
+                q_len = self.noise.shape[1]
+            head = int(self.wi[b, L.WI_NOISE_HEAD])
+            idx = (head + count + np.arange(CHUNK)) % q_len
+            self.noise[b, idx] = self.streams.noise(b)
+            self.wi[b, L.WI_NOISE_COUNT] = count + CHUNK
+
+    def _grow_noise(self, q_len: int) -> None:
+        """A longer noise ring, each world's unrolled so that its head is at index 0."""
+        old_q = self.noise.shape[1]
+        idx = (self.wi[:, L.WI_NOISE_HEAD][:, None] + np.arange(old_q)[None, :]) % old_q
+        new = np.zeros((self.batch_size, q_len, L.NZ_COLS))
+        new[:, :old_q] = np.take_along_axis(self.noise, idx[:, :, None], axis=1)
+        self.noise = new
+        self.wi[:, L.WI_NOISE_HEAD] = 0
 
     def _reserve_ring(self, b: int, stream: int) -> None:
         if self.wi[b, L.WI_COUNT_RIGHT + stream] + CHUNK + 1 > self.sched.shape[2]:
@@ -291,9 +338,11 @@ class TrafficCore:
         short = (self.wi[rows, L.WI_COUNT_RIGHT + EGO_STREAM] < 1) | (
             self.wi[rows, L.WI_N_ACTIVE] + 2 >= self.n_slots
         )
+        if self.cfg.sensing.noisy:  # a departure measures once; the next call needs k + 2
+            short |= self.wi[rows, L.WI_NOISE_COUNT] < max(self._served_k, 1) + 3
         if short.any():  # only after direct set-ups: every call leaves room for one next_ego
             self._serve(max(self._served_k, 1), rows[short])
-        kernels.next_ego(self.arrays, self.params, sel)
+        kernels.next_ego(self.arrays, self.sensor, self.params, sel)
         self._check_overflow()
 
     def remove_ego(self, mask: np.ndarray | None = None) -> None:
@@ -379,11 +428,11 @@ class TrafficCore:
         ego_terms = np.empty((b, len(EGO_TERMS)))
         hw_terms = np.empty((b, n_agents, len(LEARNED_HIGHWAY_TERMS)))
         trace = np.empty((b, k, L.TR_COLS))
-        ego_obs = np.empty((b, len(EGO_FEATURES)), dtype=np.float32)
+        ego_obs = np.empty((b, self.obs_size), dtype=np.float32)
         hw_obs = np.empty((b, n_agents, len(HIGHWAY_FEATURES)), dtype=np.float32)
         timer = None if self._called else _announce_compilation(repr(self._kernel))
         status = self._kernel(
-            self.arrays, *self._worlds, self.params, k,
+            self.arrays, self.sensor, *self._worlds, self.params, k,
             self._all_worlds if step_mask is None else step_mask,
             ego_cmd, roster.rows, np.ascontiguousarray(roster_cmd, dtype=np.float64),
             ego_terms, hw_terms, trace, ego_obs, hw_obs,
@@ -410,7 +459,15 @@ class TrafficCore:
             exited=roster.exited if n_agents else no_agents,
             ego_partner=call[L.WI_EGO_PARTNER - L.WI_STEP_OUTCOME],
             ego_rear=call[L.WI_EGO_REAR - L.WI_STEP_OUTCOME] != 0,
+            filter_interventions=self._interventions(),
         )
+
+    def _interventions(self) -> np.ndarray | None:
+        """[B] the safety filter's overrides in each world's current (or just ended) episode;
+        None with the filter off."""
+        if not self.cfg.ego.safety_filter:
+            return None
+        return self.wi[:, L.WI_FILTER_COUNT].copy()
 
     def _check_overflow(self) -> None:
         bad = np.flatnonzero(self.wi[:, L.WI_OVERFLOW])
@@ -442,11 +499,12 @@ class TrafficCore:
         return Roster(rows)
 
     def observe(self, roster: Roster | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The current observations: ego [B, 7] and the roster's [B, K, 12] float32."""
+        """The current observations: ego [B, obs_size] (the sensor's latest output; no new
+        measurement) and the roster's [B, K, 12] float32."""
         roster = self._no_roster if roster is None else roster
-        ego_obs = np.empty((self.batch_size, len(EGO_FEATURES)), dtype=np.float32)
+        ego_obs = np.empty((self.batch_size, self.obs_size), dtype=np.float32)
         hw_obs = np.empty((self.batch_size, roster.n_agents, len(HIGHWAY_FEATURES)), np.float32)
-        kernels.observe(self.arrays, self.params, roster.rows, ego_obs, hw_obs)
+        kernels.observe(self.arrays, self.sensor, self.params, roster.rows, ego_obs, hw_obs)
         return ego_obs, hw_obs
 
     def ego_gaps(self) -> EgoGaps:
@@ -512,6 +570,7 @@ class TrafficCore:
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[world] = True
         kernels.rebuild_lanes(self.arrays, self.params, sel)
+        self._restart_sensor(sel)
         return s
 
     def place(self, world: int, slot: int, x_m: float, v_mps: float | None = None) -> None:
@@ -528,6 +587,17 @@ class TrafficCore:
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[world] = True
         kernels.rebuild_lanes(self.arrays, self.params, sel)
+        self._restart_sensor(sel)
+
+    def _restart_sensor(self, sel: np.ndarray) -> None:
+        """A scene set up by hand: the ego's sensor starts a fresh history there (imperfect
+        sensing only; the ego then sees its first measurement until `latency_s` has passed)."""
+        if not self.cfg.sensing.active:
+            return
+        for b in np.flatnonzero(sel).tolist():  # one measurement now, k + 2 for the next call
+            self._top_up_noise(b, max(self._served_k, 1) + 3)
+        kernels.sense_restart(self.arrays, self.sensor, self.params, sel)
+        self._check_overflow()
 
     def clear_traffic(self, mask: np.ndarray | None = None) -> None:
         """Empty the roads of `mask` (all if None) and stop their arrivals: scenario set-ups
@@ -546,10 +616,7 @@ class TrafficCore:
             "version": STATE_DICT_VERSION,
             "config": to_dict(self.cfg),
             "batch_size": self.batch_size,
-            "arrays": {
-                name: getattr(self, name).copy()
-                for name in ("vf", "vi", "wf", "wi", "lanes", "sched")
-            },
+            "arrays": {name: getattr(self, name).copy() for name in _ARRAYS},
             "generators": [[g.bit_generator.state for g in gens] for gens in self.streams.gens],
             "served_k": self._served_k,
         }
@@ -557,7 +624,7 @@ class TrafficCore:
     def load_state_dict(self, saved: dict[str, Any]) -> None:
         """Restore a `state_dict` of a core with the same config and batch size."""
         version = saved.get("version")
-        if version != STATE_DICT_VERSION:
+        if version not in (1, STATE_DICT_VERSION):
             raise ValueError(
                 f"core state version {version!r} is not {STATE_DICT_VERSION} (saved by another "
                 "version of marlmerge)"
@@ -569,12 +636,17 @@ class TrafficCore:
             raise ValueError(
                 f"core state has {saved['batch_size']} worlds, this core {self.batch_size}"
             )
-        arrays = saved["arrays"]
-        for name in ("vf", "vi", "wf", "wi", "lanes", "sched"):
+        arrays = saved["arrays"] if version == STATE_DICT_VERSION else _upgrade_v1(saved, self)
+        for name in _ARRAYS:
             a = np.asarray(arrays[name])
             if a.ndim != getattr(self, name).ndim:
                 raise ValueError(f"core state: array {name!r} has shape {a.shape}")
             setattr(self, name, a.copy())
+        if self.wi.shape[1] != L.WI_ROWS or self.ring.shape != (
+            self.batch_size * self._ring_len,
+            self.obs_size,
+        ):
+            raise ValueError("core state: per-world or sensor arrays do not fit this scenario")
         self.streams.seed(
             np.arange(self.batch_size),
             [np.random.SeedSequence(0) for _ in range(self.batch_size)],
@@ -602,3 +674,19 @@ class TrafficCore:
     def egos_running(self) -> np.ndarray:
         """[B] bool: the world's ego is on the road and its episode has not ended."""
         return (self.vi[:, L.VI_ACTIVE, EGO] == 1) & (self.wi[:, L.WI_OUTCOME] == OUTCOME_NONE)
+
+
+def _upgrade_v1(saved: dict[str, Any], core: TrafficCore) -> dict[str, np.ndarray]:
+    """The arrays of a version-1 state (saved before the sensor existed, so with perfect
+    sensing): the new `wi` rows zero, the sensor's arrays empty."""
+    if core.cfg.sensing.active:  # pragma: no cover - a version-1 config has no sensing
+        raise ValueError("core state of version 1 cannot hold a sensor's state")
+    arrays = {name: np.asarray(saved["arrays"][name]) for name in _ARRAYS_V1}
+    wi = arrays["wi"]
+    if wi.ndim != 2 or wi.shape[1] != L.WI_ROWS_V1:
+        raise ValueError(f"core state: array 'wi' has shape {wi.shape}")
+    pad = np.zeros((wi.shape[0], L.WI_ROWS - L.WI_ROWS_V1), dtype=np.int64)
+    arrays["wi"] = np.concatenate([wi, pad], axis=1)
+    arrays["ring"] = np.zeros((core.batch_size * core._ring_len, core.obs_size))
+    arrays["noise"] = np.zeros((core.batch_size, 0, L.NZ_COLS))
+    return arrays

@@ -33,6 +33,8 @@ KERNEL_SOURCES = (
     "sim/kernels.py",
     "sim/lanes.py",
     "sim/layout.py",
+    "sim/safety.py",
+    "sim/sensing.py",
     "sim/step.py",
     "spec/reward.py",
 )

@@ -6,6 +6,9 @@ world and, after each step, adds up the named reward terms of the ego and of the
 (`marlmerge.spec.observation` order). A world whose ego was running stops stepping within the
 call once its ego's episode ends, so one world of a batch and a single world step alike.
 `rollout_parallel` is the same over worlds in parallel threads (worlds are independent).
+With imperfect sensing (`[sensing]`) the ego's sensor measures after every simulator step and
+the observation is the delayed measurement (`marlmerge.sim.sensing`); `X = (ring, noise)` is its
+state (`marlmerge.sim.layout`).
 
 The drivers return how many worlds need the Python side before another call of the same `k`
 (more slots, more drawn arrivals or ego departures): the core serves them between calls.
@@ -32,7 +35,9 @@ from marlmerge.sim.layout import (
     P_DT,
     P_EGO_T,
     P_LC_COOLDOWN,
+    P_NOISE_ON,
     P_POSITION_SCALE,
+    P_SENSE_ON,
     P_SENSING,
     P_SPEED_SCALE,
     P_V_LIMIT,
@@ -86,25 +91,26 @@ from marlmerge.sim.layout import (
     WF_T,
     WF_VB,
     WF_VF,
-    WF_XB,
-    WF_XF,
     WI_BACK,
     WI_COUNT_RIGHT,
     WI_EGO_COUNT,
     WI_EGO_PARTNER,
     WI_EGO_REAR,
     WI_EGO_STEPS,
+    WI_FILTER_COUNT,
     WI_FRONT,
     WI_HEAD_RIGHT,
     WI_N_ACTIVE,
     WI_N_RIGHT,
     WI_NEED,
     WI_NEXT_ID,
+    WI_NOISE_COUNT,
     WI_OUTCOME,
     WI_OVERFLOW,
     WI_STEP_OUTCOME,
     WI_SUBSTEPS,
 )
+from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, sensed_output
 from marlmerge.sim.step import deactivate, ego_gaps, free_slot, neighbours, substep
 from marlmerge.spec.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
 
@@ -186,18 +192,25 @@ def _roster_step(
 
 @kernel
 def observe_world(
-    S: tuple, b: int, p: np.ndarray, roster: np.ndarray, ego_obs: np.ndarray, hw_obs: np.ndarray
+    S: tuple,
+    X: tuple,
+    b: int,
+    p: np.ndarray,
+    roster: np.ndarray,
+    ego_obs: np.ndarray,
+    hw_obs: np.ndarray,
 ) -> None:
-    """Scaled observations of world `b`: the ego's `EGO_FEATURES` into ego_obs[b] and each
-    counting roster agent's `HIGHWAY_FEATURES` into hw_obs[b, j] (zeros where not counting)."""
+    """Scaled observations of world `b`: the ego's features (`ego_features(cfg)`: exact, or the
+    sensor's delayed measurement) into ego_obs[b] and each counting roster agent's
+    `HIGHWAY_FEATURES` into hw_obs[b, j] (zeros where not counting)."""
     vf, vi, wf, wi, lanes, sched = S
     ss, ps = p[P_SPEED_SCALE], p[P_POSITION_SCALE]
     v_limit, rng = p[P_V_LIMIT], p[P_SENSING]
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
-    ego_obs[b, 0], ego_obs[b, 1] = v_e / ss, x_e / ps
-    ego_obs[b, 2], ego_obs[b, 3] = wf[b, WF_VF] / ss, wf[b, WF_XF] / ps
-    ego_obs[b, 4], ego_obs[b, 5] = wf[b, WF_VB] / ss, wf[b, WF_XB] / ps
-    ego_obs[b, 6] = v_limit / ss
+    if p[P_SENSE_ON] > 0.0:
+        sensed_output(S, X, b, p, ego_obs)
+    else:
+        ego_observation(S, b, p, ego_obs, b, X[1], -1)
     ego_on = vi[b, VI_ACTIVE, EGO] == 1
     ego_in_lane = 1.0 if ego_on and vi[b, VI_LANE, EGO] == RIGHT else 0.0
     for j in range(roster.shape[2]):
@@ -242,6 +255,8 @@ def _short(S: tuple, b: int, p: np.ndarray, k: int) -> int:
     vf, vi, wf, wi, lanes, sched = S
     if wi[b, WI_N_ACTIVE] + 2 * k + 3 > vi.shape[2]:
         return 1
+    if p[P_NOISE_ON] > 0.0 and wi[b, WI_NOISE_COUNT] < k + 2:
+        return 1  # drawn measurement errors for k steps and one departure
     q_len = sched.shape[2]
     horizon = wf[b, WF_T] + (k + 1) * p[P_DT]
     for stream in range(2):
@@ -255,6 +270,7 @@ def _short(S: tuple, b: int, p: np.ndarray, k: int) -> int:
 @kernel
 def rollout_world(
     S: tuple,
+    X: tuple,
     b: int,
     p: np.ndarray,
     k: int,
@@ -269,9 +285,10 @@ def rollout_world(
     hw_obs: np.ndarray,
 ) -> int:
     """Up to `k` simulator steps of world `b` with the ego command ego_cmd[b] (see the module
-    docstring). Outputs: ego_terms[b] [5], hw_terms[b] [K, 8], trace[b, :k] [TR_COLS], the
-    observations, and per world `WI_SUBSTEPS`, the outcome reached (`WI_STEP_OUTCOME`) with the
-    ego's collision partner. Returns `_needs_service`, plus `OVERFLOW` if the world overflowed."""
+    docstring). Outputs: ego_terms[b] [len(EGO_TERMS)], hw_terms[b] [K, 8], trace[b, :k]
+    [TR_COLS], the observations, and per world `WI_SUBSTEPS`, the outcome reached
+    (`WI_STEP_OUTCOME`) with the ego's collision partner. Returns `_needs_service`, plus
+    `OVERFLOW` if the world overflowed."""
     vf, vi, wf, wi, lanes, sched = S
     for s in range(vi.shape[2]):
         vi[b, VI_FLAGS, s] = 0
@@ -289,6 +306,8 @@ def rollout_world(
             if started and not live:
                 break
             ego_hit = substep(S, b, p, ego_cmd[b], roster, roster_cmd)
+            if p[P_SENSE_ON] > 0.0 and vi[b, VI_ACTIVE, EGO] == 1:
+                sense_measure(S, X, b, p)
             _trace_row(S, b, trace, i)
             if live:
                 ego_steps += 1
@@ -303,13 +322,14 @@ def rollout_world(
             steps = i + 1
     wi[b, WI_STEP_OUTCOME], wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR] = outcome, partner, rear
     wi[b, WI_SUBSTEPS], wi[b, WI_EGO_STEPS] = steps, ego_steps
-    observe_world(S, b, p, roster, ego_obs, hw_obs)
+    observe_world(S, X, b, p, roster, ego_obs, hw_obs)
     return _needs_service(S, b, p, k) + OVERFLOW * wi[b, WI_OVERFLOW]
 
 
 @kernel
 def rollout(
     S: tuple,
+    X: tuple,
     lo: int,
     hi: int,
     p: np.ndarray,
@@ -331,6 +351,7 @@ def rollout(
     for b in range(lo, hi):
         status += rollout_world(
             S,
+            X,
             b,
             p,
             k,
@@ -350,6 +371,7 @@ def rollout(
 @kernel(parallel=True)
 def rollout_parallel(
     S: tuple,
+    X: tuple,
     n_chunks: int,
     p: np.ndarray,
     k: int,
@@ -370,6 +392,7 @@ def rollout_parallel(
     for c in prange(n_chunks):
         status += rollout(
             S,
+            X,
             (c * n) // n_chunks,
             ((c + 1) * n) // n_chunks,
             p,
@@ -389,11 +412,26 @@ def rollout_parallel(
 
 @kernel
 def observe(
-    S: tuple, p: np.ndarray, roster: np.ndarray, ego_obs: np.ndarray, hw_obs: np.ndarray
+    S: tuple,
+    X: tuple,
+    p: np.ndarray,
+    roster: np.ndarray,
+    ego_obs: np.ndarray,
+    hw_obs: np.ndarray,
 ) -> None:
     """`observe_world` for every world."""
     for b in range(S[0].shape[0]):
-        observe_world(S, b, p, roster, ego_obs, hw_obs)
+        observe_world(S, X, b, p, roster, ego_obs, hw_obs)
+
+
+@kernel
+def sense_restart(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray) -> None:
+    """A fresh sensor history in the worlds of `mask` whose ego is on the road (after a scene
+    was set up by hand)."""
+    vf, vi, wf, wi, lanes, sched = S
+    for b in range(vf.shape[0]):
+        if mask[b] and vi[b, VI_ACTIVE, EGO] == 1:
+            sense_fill(S, X, b, p)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -431,8 +469,9 @@ def _keep_merged_ego(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel
-def next_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
-    """End the current ego of world `b` and send the next drawn one from the ramp start.
+def next_ego_world(S: tuple, X: tuple, b: int, p: np.ndarray) -> None:
+    """End the current ego of world `b` and send the next drawn one from the ramp start (with a
+    fresh sensor history when sensing is imperfect).
 
     A merged ego stays on the road; after a collision the ego and the vehicles it hit are towed
     away; a truncated ego is removed."""
@@ -468,8 +507,11 @@ def next_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
     wf[b, WF_EGO_T], wf[b, WF_EGO_STALL], wf[b, WF_EGO_IN_LANE] = 0.0, 0.0, 0.0
     wi[b, WI_OUTCOME] = OUTCOME_NONE
     wi[b, WI_EGO_COUNT] += 1
+    wi[b, WI_FILTER_COUNT] = 0
     neighbours(S, b, p)
     ego_gaps(S, b, p)
+    if p[P_SENSE_ON] > 0.0:
+        sense_fill(S, X, b, p)
 
 
 @kernel
@@ -485,11 +527,11 @@ def remove_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel
-def next_ego(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
+def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """`next_ego_world` for the worlds of `mask`."""
     for b in range(S[0].shape[0]):
         if mask[b]:
-            next_ego_world(S, b, p)
+            next_ego_world(S, X, b, p)
 
 
 @kernel

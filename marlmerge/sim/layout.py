@@ -11,6 +11,14 @@ one world lies together in memory while a kernel steps it:
     lanes [B, 2, N]     int64    each highway lane's vehicle slots, sorted downstream first
     sched [B, 3, Q, SC_COLS] float64  drawn arrivals (lanes RIGHT, LEFT) and ego departures (2)
 
+and, with imperfect sensing (`[sensing]`), the sensor's state `X = (ring, noise)`:
+
+    ring  [B * R, F]    float64  the ego's last R measured observations per world (rows
+                                 b*R .. b*R+R-1, a ring with head `WI_SENSE_HEAD`), R = latency
+                                 steps + 1, F the layout's length
+    noise [B, QN, NZ_COLS] float64  drawn standard-normal measurement errors, a ring per world
+                                 (`WI_NOISE_HEAD`, `WI_NOISE_COUNT`), one row per measurement
+
 Slot 0 of every world is the ramp vehicle (the ego). Rows are named by the constants below; the
 Python side reads them through `TrafficState`, never by number.
 """
@@ -19,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, latency_steps
 
 # NumPy integers rather than Python ints: Numba compiles a separate copy of a function for every
 # literal int argument, but types a global NumPy integer as a plain int64.
@@ -115,8 +123,12 @@ road as a mainline vehicle."""
     WI_EGO_REAR,
     WI_SUBSTEPS,
     WI_EGO_STEPS,
-) = range(29)
-WI_ROWS = 29
+    WI_SENSE_HEAD,
+    WI_NOISE_HEAD,
+    WI_NOISE_COUNT,
+    WI_FILTER_COUNT,
+) = range(33)
+WI_ROWS = 33
 """ego_outcome (OUTCOME_*), ego_count, next_id, background_collisions, steps (simulator steps of
 this world), entered, exited (vehicles in / out since reset), lane-list lengths (right, left),
 the ego's gap-front and gap-back slots (-1 none), active vehicles, ring heads and counts of the
@@ -125,7 +137,11 @@ overflow flag (a kernel found no free slot: a bug), vehicle-steps simulated sinc
 flag set by the last call when the world needs the Python side before the next (`_serve`); and
 what the last call did (`WI_CALL`): the outcome reached (0 if none), the ego's collision
 partner and whether it was the rear vehicle, simulator steps run, and how many of them the ego
-was running at (0 when it was not running at the start of the call)."""
+was running at (0 when it was not running at the start of the call); the sensor's ring head, the
+head and count of the drawn measurement errors, and the safety filter's interventions in the
+current ego's episode (simulator steps whose command it overrode)."""
+WI_ROWS_V1 = 29
+"""`wi` rows of a version-1 core state (before the sensing and safety-filter rows)."""
 WI_CALL = slice(WI_STEP_OUTCOME, WI_EGO_STEPS + 1)
 assert WI_N_LEFT == WI_N_RIGHT + 1 and WI_HEAD_LEFT == WI_HEAD_RIGHT + 1  # indexed as base + lane
 assert WI_COUNT_LEFT == WI_COUNT_RIGHT + 1 and WI_QUEUE_LEFT == WI_QUEUE_RIGHT + 1
@@ -136,6 +152,13 @@ SC_T, SC_V, SC_V0, SC_T_HW, SC_POL, SC_PROFILE = range(6)
 SC_COLS = 6
 """arrival time (ego stream: unused), speed at the entrance (ego: at the ramp start), IDM v0,
 headway T, politeness, profile code (the ego stream's driver joins traffic as NEUTRAL)."""
+
+# ---- noise columns: the measurement errors of one measurement (standard normals)
+NZ_FRONT_X, NZ_FRONT_V, NZ_BACK_X, NZ_BACK_V = range(4)
+NZ_LEFT_FRONT_X, NZ_LEFT_FRONT_V, NZ_LEFT_BACK_X, NZ_LEFT_BACK_V = range(4, 8)
+NZ_COLS = 8
+"""Position and speed errors of the gap-front, gap-back, left-lane front and left-lane back
+vehicles (the vehicle alongside is the gap-front or gap-back vehicle and shares its errors)."""
 
 # ---- roster rows: the highway agents of a call, int64 [RO_ROWS, B, K]
 RO_SLOT, RO_ID, RO_MASK, RO_EXITED = range(4)
@@ -207,6 +230,26 @@ _PARAMS = (
     "hw_hi",
     "speed_scale_mps",
     "position_scale_m",
+    "time_scale_s",
+    "obs_extended",
+    "time_cap_s",
+    "lane_width_m",
+    "ramp_offset_m",
+    "merge_zone_m",
+    "width_m",
+    "sense_on",
+    "sense_ring",
+    "noise_on",
+    "position_noise_std_m",
+    "speed_noise_std_mps",
+    "occlusion",
+    "safety_filter",
+    "safety_min_headway_s",
+    "safety_min_gap_m",
+    "w_back_headway",
+    "back_headway_s",
+    "w_back_ttc",
+    "back_ttc_s",
 )
 (
     P_DT,
@@ -264,12 +307,35 @@ _PARAMS = (
     P_HW_HI,
     P_SPEED_SCALE,
     P_POSITION_SCALE,
+    P_TIME_SCALE,
+    P_OBS_EXTENDED,
+    P_TIME_CAP,
+    P_LANE_WIDTH,
+    P_RAMP_OFFSET,
+    P_MERGE_ZONE,
+    P_WIDTH,
+    P_SENSE_ON,
+    P_SENSE_RING,
+    P_NOISE_ON,
+    P_POS_NOISE,
+    P_SPEED_NOISE,
+    P_OCCLUSION,
+    P_FILTER,
+    P_FILTER_HEADWAY,
+    P_FILTER_GAP,
+    P_W_BACK_HW,
+    P_BACK_HW,
+    P_W_BACK_TTC,
+    P_BACK_TTC,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
 
-def pack_params(cfg: ScenarioConfig, speed_scale_mps: float, position_scale_m: float) -> np.ndarray:
-    """The config's numbers in the order of `P`, as the kernels read them."""
+def pack_params(
+    cfg: ScenarioConfig, speed_scale_mps: float, position_scale_m: float, time_scale_s: float
+) -> np.ndarray:
+    """The config's numbers in the order of `P`, as the kernels read them (the scales of the
+    observation tables, `marlmerge.spec.observation`, given by the caller)."""
     r, d, e, w, i, s = cfg.road, cfg.driver, cfg.ego, cfg.reward, cfg.interaction, cfg.sim
     v_limit = r.speed_limit_mps
     values = {
@@ -328,7 +394,36 @@ def pack_params(cfg: ScenarioConfig, speed_scale_mps: float, position_scale_m: f
         "hw_hi": s.highway_agent_accel_bounds_mps2[1],
         "speed_scale_mps": speed_scale_mps,
         "position_scale_m": position_scale_m,
+        "time_scale_s": time_scale_s,
+        **_option_params(cfg),
     }
     if set(values) != set(_PARAMS):  # pragma: no cover - a developer error, caught by any test
         raise AssertionError(f"pack_params out of date: {set(values) ^ set(_PARAMS)}")
     return np.array([float(values[name]) for name in _PARAMS])
+
+
+def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
+    """The opt-in options: the extended observation, sensing, the safety filter, the follower's
+    reward terms (flags as 0/1)."""
+    e, sensing, w = cfg.ego, cfg.sensing, cfg.reward
+    return {
+        "obs_extended": float(e.observation == "extended"),
+        "time_cap_s": e.time_to_merge_cap_s,
+        "lane_width_m": cfg.road.lane_width_m,
+        "ramp_offset_m": cfg.road.ramp_offset_m,
+        "merge_zone_m": cfg.road.merge_zone_m,
+        "width_m": cfg.vehicle.width_m,
+        "sense_on": float(sensing.active),
+        "sense_ring": float(latency_steps(cfg) + 1),
+        "noise_on": float(sensing.noisy),
+        "position_noise_std_m": sensing.position_noise_std_m,
+        "speed_noise_std_mps": sensing.speed_noise_std_mps,
+        "occlusion": float(sensing.occlusion),
+        "safety_filter": float(e.safety_filter),
+        "safety_min_headway_s": e.safety_min_headway_s,
+        "safety_min_gap_m": e.safety_min_gap_m,
+        "w_back_headway": w.w_back_headway,
+        "back_headway_s": w.back_headway_s,
+        "w_back_ttc": w.w_back_ttc,
+        "back_ttc_s": w.back_ttc_s,
+    }

@@ -79,6 +79,11 @@ class TrafficState:
     queue = _Row("wi", slice(L.WI_QUEUE_RIGHT, L.WI_QUEUE_LEFT + 1), "[B, 2] entrance queues")
     max_queue = _Row("wi", L.WI_QUEUE_MAX, "longest entrance queue since reset")
     n_active = _Row("wi", L.WI_N_ACTIVE, "vehicles on the road, the ego included")
+    filter_interventions = _Row(
+        "wi",
+        L.WI_FILTER_COUNT,
+        "simulator steps of the current ego's episode whose command the safety filter overrode",
+    )
     steps = _Row("wi", L.WI_STEPS, "simulator steps since reset")
     vehicle_steps = _Row("wi", L.WI_VEH_STEPS, "vehicle-steps simulated since reset")
 
@@ -151,10 +156,12 @@ class Rollout:
     ego_outcome: np.ndarray  # [B] OUTCOME_* reached in this call (OUTCOME_NONE if none)
     ego_terms: np.ndarray  # [B, len(EGO_TERMS)] summed over the steps the ego ran
     trace: np.ndarray  # [B, k, TR_COLS] the ego after each step (rows < substeps are valid)
-    ego_obs: np.ndarray  # [B, len(EGO_FEATURES)] float32, after the call
+    ego_obs: np.ndarray  # [B, obs size of ego.observation] float32, what the ego sees after it
     hw_terms: np.ndarray  # [B, K, len(LEARNED_HIGHWAY_TERMS)] summed while counting
     hw_obs: np.ndarray  # [B, K, len(HIGHWAY_FEATURES)] float32 (zeros where masked)
     left_road: np.ndarray  # [B, K] bool: counting at the start, gone at the end
     exited: np.ndarray  # [B, K] bool: ... by the road's downstream end
     ego_partner: np.ndarray  # [B] slot the ego collided with in this call, -1 if none
     ego_rear: np.ndarray  # [B] bool: the ego was the rear vehicle of that collision
+    filter_interventions: np.ndarray | None = None  # [B] the safety filter's overrides in the
+    # current (or just ended) ego episode, in simulator steps; None with the filter off

@@ -48,6 +48,7 @@ from marlmerge.sim.layout import (
     P_DT,
     P_EGO_HI,
     P_EGO_LO,
+    P_FILTER,
     P_HW_HI,
     P_HW_LO,
     P_INTERACTION_RANGE,
@@ -120,6 +121,7 @@ from marlmerge.sim.layout import (
     WI_EGO_REAR,
     WI_ENTERED,
     WI_EXITED,
+    WI_FILTER_COUNT,
     WI_FRONT,
     WI_HEAD_RIGHT,
     WI_N_ACTIVE,
@@ -133,6 +135,7 @@ from marlmerge.sim.layout import (
     WI_STEPS,
     WI_VEH_STEPS,
 )
+from marlmerge.sim.safety import filtered_accel
 
 INF = math.inf
 
@@ -268,7 +271,8 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
     downstream (each vehicle's leader is still known as it was before the step). Mainline drivers
     follow their profile, controlled agents their command (`mark_controlled`), the ego its
     command clipped to its bounds (NaN: plain IDM, ignoring the merge). Returns how many
-    vehicles moved."""
+    vehicles moved. With the safety filter on, the ego's command on the ramp passes through it
+    (`marlmerge.sim.safety`), decided on the pre-step state."""
     vf, vi, wf, wi, lanes, sched = S
     dt = p[P_DT]
     dp = driver_params(p)
@@ -278,6 +282,8 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
     ego_idm = math.isnan(ego_cmd)
     ego_a = min(max(ego_cmd, p[P_EGO_LO]), p[P_EGO_HI])
+    filtering = pending and p[P_FILTER] > 0.0 and wi[b, WI_OUTCOME] == OUTCOME_NONE
+    ramp_a = _ramp_accel(S, b, p, dp, ego_a, ego_idm, x_e, v_e) if filtering else 0.0
     moved = 0
     for lane in range(2):
         n = wi[b, WI_N_RIGHT + lane]
@@ -305,11 +311,36 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
         acc = ego_a
         if ego_idm:
             acc = _scripted_accel(S, b, EGO, dp, x_e, v_e, INF, v_e, False, x_e, v_e)
+        if filtering:
+            acc = ramp_a
         wf[b, WF_EGO_CMD] = acc
         vi[b, VI_FLAGS, EGO] &= ~(EV_HIT | EV_TOW)
         _move(S, b, EGO, acc, dt)
         moved += 1
     return moved
+
+
+@kernel
+def _ramp_accel(
+    S: tuple,
+    b: int,
+    p: np.ndarray,
+    dp: tuple,
+    ego_a: float,
+    ego_idm: bool,
+    x_e: float,
+    v_e: float,
+) -> float:
+    """The ego's acceleration on the ramp through the safety filter (its command, or plain IDM
+    for a NaN command), counting an intervention when the filter changed it."""
+    vf, vi, wf, wi, lanes, sched = S
+    cmd = ego_a
+    if ego_idm:
+        cmd = _scripted_accel(S, b, EGO, dp, x_e, v_e, INF, v_e, False, x_e, v_e)
+    acc = filtered_accel(S, b, p, x_e, v_e, cmd)
+    if acc != cmd:
+        wi[b, WI_FILTER_COUNT] += 1
+    return acc
 
 
 @kernel(inline=True)

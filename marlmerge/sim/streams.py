@@ -1,11 +1,13 @@
 """Every random draw of the simulator, made with seeded NumPy generators outside the kernels.
 
 Each world has four generators, spawned from one `numpy.random.SeedSequence`: the arrivals of
-the right lane, of the left lane, the ego departures, and the road filled at a reset. Arrivals
-and departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and the driver's
-parameters) into the world's `sched` ring, which the kernels consume; the stream of numbers a
-world sees is therefore fixed by its seed alone, whatever the batch it runs in, the action
-repeat, or when the chunks happen to be drawn.
+the right lane, of the left lane, the ego departures, and the road filled at a reset; with sensor
+noise on (`[sensing]`) a fifth, the ego sensor's measurement errors (spawning a fifth child leaves
+the first four as they were). Arrivals and departures are drawn ahead in fixed chunks (`CHUNK`
+vehicles: time, speed and the driver's parameters) into the world's `sched` ring, measurement
+errors in chunks of `CHUNK` measurements into its noise ring, which the kernels consume; the
+stream of numbers a world sees is therefore fixed by its seed alone, whatever the batch it runs
+in, the action repeat, or when the chunks happen to be drawn.
 
 Seeds: `seed=s` for a batch of B worlds gives world i the sequence `SeedSequence(s,
 spawn_key=(i,))`; an explicit per-world seed s_i gives `SeedSequence(s_i, spawn_key=(0,))`, the
@@ -25,6 +27,7 @@ from marlmerge.sim.layout import (
     EGO_STREAM,
     LEFT,
     NEUTRAL,
+    NZ_COLS,
     RIGHT,
     SC_COLS,
     SC_POL,
@@ -36,9 +39,11 @@ from marlmerge.sim.layout import (
 )
 
 CHUNK = 32
-"""Vehicles drawn per stream at a time."""
+"""Vehicles (or measurements) drawn per stream at a time."""
 FILL_STREAM = 3
 N_STREAMS = 4
+NOISE_STREAM = 4
+"""The sensor's stream, spawned only when its noise is on."""
 
 
 WorldSeed = int | np.random.SeedSequence
@@ -76,13 +81,14 @@ class Streams:
     def __init__(self, cfg: ScenarioConfig, batch_size: int):
         self.cfg = cfg
         self.gens: list[list[np.random.Generator]] = [[] for _ in range(batch_size)]
+        self.n_streams = N_STREAMS + 1 if cfg.sensing.noisy else N_STREAMS
 
     def seed(self, rows: np.ndarray, sequences: list[np.random.SeedSequence]) -> None:
         for b, seq in zip(rows, sequences, strict=True):
             # spawn from a copy: spawning advances a SeedSequence, and equal seeds must give equal
             # worlds every time
             fresh = np.random.SeedSequence(seq.entropy, spawn_key=seq.spawn_key)
-            self.gens[b] = [np.random.default_rng(c) for c in fresh.spawn(N_STREAMS)]
+            self.gens[b] = [np.random.default_rng(c) for c in fresh.spawn(self.n_streams)]
 
     # ------------------------------------------------------------------ drawn vehicles
     def _drivers(self, g: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
@@ -124,6 +130,11 @@ class Streams:
         out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(g, CHUNK)
         out[:, SC_PROFILE] = NEUTRAL
         return out
+
+    def noise(self, b: int) -> np.ndarray:
+        """Standard-normal errors of the next `CHUNK` measurements of world `b`'s ego sensor,
+        [CHUNK, NZ_COLS] (columns `NZ_*`; the core scales them by the configured stds)."""
+        return self.gens[b][NOISE_STREAM].standard_normal((CHUNK, NZ_COLS))
 
     def fill(self, b: int) -> dict[str, np.ndarray]:
         """Mainline vehicles for a fresh road in steady flow: each lane filled from the exit

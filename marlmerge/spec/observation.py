@@ -8,6 +8,20 @@ Missing gap vehicles (none in the right lane within the sensing range) are encod
 vehicle at the edge of the sensing range (`x_ego +- sensing_range_m`) driving at the speed limit.
 A missing leader or follower of a mainline vehicle is encoded as a gap equal to the sensing range
 and a speed equal to the vehicle's own speed.
+
+The ego has two layouts, chosen by `ego.observation` (`ego_features(cfg)`): `"paper"`
+(`EGO_FEATURES`, the paper's state) and `"extended"` (`EGO_EXTENDED_FEATURES`: the paper's state
+followed by the right-lane vehicle alongside the ego, the nearest left-lane vehicles and the time
+to the join and merge points). Every layout begins with the paper's seven features, so a reader of
+those (`marlmerge.baselines`, `marlmerge.policies`) works with either. In the extended layout a
+missing vehicle (none alongside, none in the left lane within the sensing range, or hidden by
+occlusion) is the same virtual vehicle: dx = +sensing range (ahead, alongside) or -sensing range
+(behind), at the speed limit, overlap 0.
+
+`Feature.noise` names the measurement noise of `[sensing]` that applies to a feature
+(`"position"`: `sensing.position_noise_std_m`, `"speed"`: `sensing.speed_noise_std_mps`): the
+positions and speeds of other vehicles, never the ego's own motion or the road. Virtual (missing)
+vehicles carry no noise. Highway agents observe without noise, latency or occlusion.
 """
 
 from __future__ import annotations
@@ -16,8 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from marlmerge.config import OBSERVATION_LAYOUTS, ScenarioConfig
+
 SPEED_SCALE_MPS = 30.0
 POSITION_SCALE_M = 100.0
+TIME_SCALE_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -26,6 +43,8 @@ class Feature:
     unit: str
     scale: float
     doc: str
+    noise: str = ""
+    """Measurement noise of `[sensing]` that applies: "position", "speed" or "" (none)."""
 
 
 EGO_FEATURES: tuple[Feature, ...] = (
@@ -36,13 +55,89 @@ EGO_FEATURES: tuple[Feature, ...] = (
         POSITION_SCALE_M,
         "ramp vehicle position along its path, 0 at the merge point (p_ev)",
     ),
-    Feature("front_speed", "m/s", SPEED_SCALE_MPS, "speed of the gap-front vehicle (v_gfv)"),
-    Feature("front_position", "m", POSITION_SCALE_M, "position of the gap-front vehicle (p_gfv)"),
-    Feature("back_speed", "m/s", SPEED_SCALE_MPS, "speed of the gap-back vehicle (v_gbv)"),
-    Feature("back_position", "m", POSITION_SCALE_M, "position of the gap-back vehicle (p_gbv)"),
+    Feature(
+        "front_speed", "m/s", SPEED_SCALE_MPS, "speed of the gap-front vehicle (v_gfv)", "speed"
+    ),
+    Feature(
+        "front_position",
+        "m",
+        POSITION_SCALE_M,
+        "position of the gap-front vehicle (p_gfv)",
+        "position",
+    ),
+    Feature("back_speed", "m/s", SPEED_SCALE_MPS, "speed of the gap-back vehicle (v_gbv)", "speed"),
+    Feature(
+        "back_position",
+        "m",
+        POSITION_SCALE_M,
+        "position of the gap-back vehicle (p_gbv)",
+        "position",
+    ),
     Feature("speed_limit", "m/s", SPEED_SCALE_MPS, "posted speed limit"),
 )
 """The paper's state s = (v_ev, p_ev, v_gfv, p_gfv, v_gbv, p_gbv) plus the speed limit."""
+
+EGO_EXTRA_FEATURES: tuple[Feature, ...] = (
+    Feature(
+        "side_dx",
+        "m",
+        POSITION_SCALE_M,
+        "position of the right-lane vehicle alongside the ego (its body overlaps the ego's "
+        "longitudinally) minus the ego's; none: +sensing range",
+        "position",
+    ),
+    Feature(
+        "side_speed", "m/s", SPEED_SCALE_MPS, "speed of that vehicle; none: speed limit", "speed"
+    ),
+    Feature(
+        "side_overlap",
+        "-",
+        1.0,
+        "overlap of its body with the ego's as a fraction of the vehicle length, from the "
+        "reported side_dx: 1 exactly alongside, 0 none",
+    ),
+    Feature(
+        "left_front_dx",
+        "m",
+        POSITION_SCALE_M,
+        "position of the nearest left-lane vehicle at or ahead of the ego minus the ego's; none, "
+        "or hidden (occlusion): +sensing range",
+        "position",
+    ),
+    Feature("left_front_speed", "m/s", SPEED_SCALE_MPS, "its speed; none: speed limit", "speed"),
+    Feature(
+        "left_back_dx",
+        "m",
+        POSITION_SCALE_M,
+        "position of the nearest left-lane vehicle behind the ego minus the ego's (negative); "
+        "none, or hidden (occlusion): -sensing range",
+        "position",
+    ),
+    Feature("left_back_speed", "m/s", SPEED_SCALE_MPS, "its speed; none: speed limit", "speed"),
+    Feature(
+        "time_to_join",
+        "s",
+        TIME_SCALE_S,
+        "time until the ego reaches the join point (`x_overlap_m`) at its current speed; 0 once "
+        "there; at most `ego.time_to_merge_cap_s` (also when stopped)",
+    ),
+    Feature(
+        "time_to_merge",
+        "s",
+        TIME_SCALE_S,
+        "time until the ego reaches the merge point (x = 0, the end of the merge zone) at its "
+        "current speed; 0 once past; at most `ego.time_to_merge_cap_s`",
+    ),
+)
+"""What the extended layout adds after the paper's state."""
+EGO_EXTENDED_FEATURES: tuple[Feature, ...] = EGO_FEATURES + EGO_EXTRA_FEATURES
+"""`ego.observation = "extended"`: the paper's state, then `EGO_EXTRA_FEATURES`."""
+EGO_LAYOUTS: dict[str, tuple[Feature, ...]] = {
+    "paper": EGO_FEATURES,
+    "extended": EGO_EXTENDED_FEATURES,
+}
+"""The ego's layouts by the name `ego.observation` takes."""
+assert tuple(EGO_LAYOUTS) == OBSERVATION_LAYOUTS
 
 HIGHWAY_FEATURES: tuple[Feature, ...] = (
     Feature("speed", "m/s", SPEED_SCALE_MPS, "own speed"),
@@ -66,7 +161,18 @@ HIGHWAY_FEATURES: tuple[Feature, ...] = (
 """What a mainline driver needs: own motion, own-lane neighbours, the ramp vehicle."""
 
 EGO_SCALE = np.array([f.scale for f in EGO_FEATURES])
+"""Scales of the paper's features: the first `len(EGO_FEATURES)` columns of every ego layout."""
 HIGHWAY_SCALE = np.array([f.scale for f in HIGHWAY_FEATURES])
+
+
+def ego_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
+    """The ego's observation layout of a scenario (`ego.observation`)."""
+    return EGO_LAYOUTS[cfg.ego.observation]
+
+
+def ego_obs_size(cfg: ScenarioConfig) -> int:
+    """Length of the ego's observation vector in a scenario: size views and networks by this."""
+    return len(ego_features(cfg))
 
 
 def feature_index(features: tuple[Feature, ...], name: str) -> int:

@@ -18,6 +18,8 @@ import numpy as np
 from marlmerge.config import ScenarioConfig
 from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import (
+    P_BACK_HW,
+    P_BACK_TTC,
     P_COLLISION_PENALTY,
     P_DIST_ACTIVE,
     P_DT,
@@ -31,19 +33,32 @@ from marlmerge.sim.layout import (
     P_I_W_UNSAFE,
     P_SAFE_HEADWAY,
     P_SAFE_MIN_GAP,
+    P_SENSING,
     P_SPEED_LOW,
     P_SPEED_OVER,
     P_V_LIMIT,
     P_W_ACCEL,
     P_W_BACK,
+    P_W_BACK_HW,
+    P_W_BACK_TTC,
     P_W_FRONT,
     P_W_HW_SPEED,
     P_W_SPEED,
     pack_params,
 )
 
-EGO_TERMS = ("acceleration", "gap_front", "gap_back", "speed", "collision")
-"""Names of the ego's reward terms, in reporting order (columns of the kernel's ego sums)."""
+EGO_TERMS = (
+    "acceleration",
+    "gap_front",
+    "gap_back",
+    "speed",
+    "collision",
+    "back_headway",
+    "back_ttc",
+)
+"""Names of the ego's reward terms, in reporting order (columns of the kernel's ego sums). The
+last two value the follower and are 0 unless weighted (`RewardConfig.w_back_headway`,
+`w_back_ttc`)."""
 HIGHWAY_TERMS = ("acceleration", "gap_front", "speed", "collision")
 """A mainline driver's own driving terms."""
 INTERACTION_TERMS = ("ego_collision", "ego_hard_brake", "ego_stall", "ego_unsafe_gap")
@@ -84,6 +99,23 @@ def ego_closeness(
 
 
 @kernel
+def follower_closeness(
+    params, x_m: float, v_mps: float, d_back_m: float, v_back_mps: float
+) -> tuple[float, float]:  # noqa: ANN001
+    """How far the gap-back vehicle is inside its headway and its time-to-collision thresholds,
+    g = clip(1 - d / s, 0, 1)^2 with s = back_headway_s x its speed and s = back_ttc_s x its
+    closing speed on the ego (0 when it is not closing in); 0 outside the merge area or without
+    a gap-back vehicle within the sensing range (a virtual one is never closer than that)."""
+    if x_m < params[P_DIST_ACTIVE] or d_back_m >= params[P_SENSING]:
+        return 0.0, 0.0
+    closing = max(v_back_mps - v_mps, 0.0)
+    return (
+        proximity(d_back_m, params[P_BACK_HW] * v_back_mps),
+        proximity(d_back_m, params[P_BACK_TTC] * closing),
+    )
+
+
+@kernel
 def add_ego_terms(
     params,
     out,
@@ -96,7 +128,7 @@ def add_ego_terms(
     v_back_mps: float,
     collided: bool,
 ) -> None:  # noqa: ANN001
-    """Add one simulator step of the ego's `EGO_TERMS` to out[b] ([B, 5]); accel is the applied
+    """Add one simulator step of the ego's `EGO_TERMS` to out[b] ([B, 7]); accel is the applied
     one."""
     close_f, close_b = ego_closeness(params, x_m, v_mps, d_front_m, d_back_m, v_back_mps)
     out[b, 0] += -params[P_W_ACCEL] * abs(accel_mps2)
@@ -106,6 +138,9 @@ def add_ego_terms(
         v_mps, params[P_V_LIMIT], params[P_SPEED_LOW], params[P_SPEED_OVER]
     )
     out[b, 4] += -params[P_COLLISION_PENALTY] * collided
+    close_hw, close_ttc = follower_closeness(params, x_m, v_mps, d_back_m, v_back_mps)
+    out[b, 5] += -params[P_W_BACK_HW] * close_hw
+    out[b, 6] += -params[P_W_BACK_TTC] * close_ttc
 
 
 @kernel
@@ -170,9 +205,9 @@ def add_highway_terms(
 
 
 def _params(cfg: ScenarioConfig) -> np.ndarray:
-    from marlmerge.spec.observation import POSITION_SCALE_M, SPEED_SCALE_MPS
+    from marlmerge.spec.observation import POSITION_SCALE_M, SPEED_SCALE_MPS, TIME_SCALE_S
 
-    return pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M)
+    return pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S)
 
 
 def ego_step_terms(

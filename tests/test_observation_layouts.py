@@ -1,0 +1,176 @@
+"""The extended ego observation: the table, the kernel's values in hand-computed scenes, and every
+view sized from the layout."""
+
+import gymnasium
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+from scenes import scene
+from torchrl.envs.utils import check_env_specs
+
+import marlmerge
+from marlmerge.batched_env import BatchedMergeEnv
+from marlmerge.config import ScenarioConfig
+from marlmerge.marl_env import MultiAgentMergeEnv
+from marlmerge.pettingzoo_env import EGO_AGENT
+from marlmerge.spec.observation import (
+    EGO_EXTENDED_FEATURES,
+    EGO_FEATURES,
+    EGO_LAYOUTS,
+    ego_features,
+    ego_obs_size,
+    feature_index,
+)
+
+EXTENDED = {"ego.observation": "extended"}
+CFG = ScenarioConfig()
+L_M, RANGE_M, V_LIMIT = CFG.vehicle.length_m, CFG.ego.sensing_range_m, CFG.road.speed_limit_mps
+
+
+def _raw(obs: np.ndarray) -> dict[str, float]:
+    """The observation in SI units, by feature name."""
+    return {f.name: float(obs[i]) * f.scale for i, f in enumerate(EGO_EXTENDED_FEATURES)}
+
+
+def test_every_layout_begins_with_the_papers_state():
+    assert tuple(EGO_LAYOUTS) == ("paper", "extended")
+    assert EGO_EXTENDED_FEATURES[: len(EGO_FEATURES)] == EGO_FEATURES
+    assert len({f.name for f in EGO_EXTENDED_FEATURES}) == len(EGO_EXTENDED_FEATURES) == 16
+    assert ego_features(CFG) == EGO_FEATURES and ego_obs_size(CFG) == 7
+    assert ego_obs_size(CFG.replace(**EXTENDED)) == 16
+    assert all(f.noise in ("", "position", "speed") for f in EGO_EXTENDED_FEATURES)
+    with pytest.raises(ValueError, match=r"ego\.observation.*'wide'"):
+        CFG.replace(**{"ego.observation": "wide"})
+
+
+def test_extended_features_match_a_hand_computed_scene():
+    # ego on the ramp at -60 m; a right-lane car 3 m ahead of it (alongside), one behind; two
+    # left-lane cars
+    core = scene(
+        ego=(-60.0, 20.0),
+        right=[(-57.0, 25.0), (-80.0, 22.0)],
+        left=[(-30.0, 28.0), (-100.0, 27.0)],
+        overrides=EXTENDED,
+    )
+    obs, _ = core.observe()
+    assert obs.shape == (1, 16) and obs.dtype == np.float32
+    got = _raw(obs[0])
+    x_join = core.cfg.x_overlap_m
+    expected = {
+        "ego_speed": 20.0,
+        "ego_position": -60.0,
+        "front_speed": 25.0,
+        "front_position": -57.0,
+        "back_speed": 22.0,
+        "back_position": -80.0,
+        "speed_limit": V_LIMIT,
+        "side_dx": 3.0,
+        "side_speed": 25.0,
+        "side_overlap": 1.0 - 3.0 / L_M,
+        "left_front_dx": 30.0,
+        "left_front_speed": 28.0,
+        "left_back_dx": -40.0,
+        "left_back_speed": 27.0,
+        "time_to_join": (x_join + 60.0) / 20.0,
+        "time_to_merge": 60.0 / 20.0,
+    }
+    assert list(got) == list(expected)
+    for name, value in expected.items():
+        assert got[name] == pytest.approx(value, rel=1e-6, abs=1e-5), name
+
+
+def test_missing_vehicles_are_virtual_at_the_sensing_edge():
+    core = scene(ego=(-60.0, 0.0), right=[(-90.0, 25.0)], overrides=EXTENDED)
+    got = _raw(core.observe()[0][0])
+    assert got["side_dx"] == pytest.approx(RANGE_M) and got["side_overlap"] == 0.0
+    assert got["side_speed"] == pytest.approx(V_LIMIT)
+    assert got["left_front_dx"] == pytest.approx(RANGE_M)
+    assert got["left_back_dx"] == pytest.approx(-RANGE_M)
+    assert got["left_front_speed"] == pytest.approx(V_LIMIT)
+    cap = CFG.ego.time_to_merge_cap_s
+    assert got["time_to_join"] == pytest.approx(cap) and got["time_to_merge"] == pytest.approx(cap)
+    # the car behind is 25 m back: not alongside
+    assert got["back_position"] == pytest.approx(-90.0)
+
+
+def test_the_alongside_vehicle_can_be_the_gap_back_one_and_times_end_at_zero():
+    core = scene(ego=(10.0, 20.0), right=[(40.0, 20.0), (8.0, 20.0)], overrides=EXTENDED)
+    got = _raw(core.observe()[0][0])  # in the lane, overlapping the car behind: a crash scene
+    assert got["side_dx"] == pytest.approx(-2.0) and got["side_overlap"] == pytest.approx(0.6)
+    assert got["time_to_join"] == 0.0 and got["time_to_merge"] == 0.0
+    assert feature_index(EGO_EXTENDED_FEATURES, "time_to_merge") == 15
+
+
+def test_the_paper_layout_is_the_first_seven_extended_features():
+    kwargs = {"ego": (-60.0, 20.0), "right": [(-57.0, 25.0)], "left": [(-30.0, 28.0)]}
+    paper = scene(**kwargs).observe()[0]
+    extended = scene(**kwargs, overrides=EXTENDED).observe()[0]
+    assert paper.shape == (1, 7) and np.array_equal(paper, extended[:, :7])
+
+
+FULL = {
+    **EXTENDED,
+    "ego.safety_filter": True,
+    "sensing.position_noise_std_m": 0.5,
+    "sensing.latency_s": 0.2,
+    "sensing.occlusion": True,
+    "reward.w_back_ttc": 1.0,
+}
+
+
+def test_torchrl_views_are_sized_from_the_layout():
+    env = BatchedMergeEnv(num_worlds=3, seed=0, overrides=FULL)
+    assert env.observation_spec["observation"].shape == (3, 16)
+    check_env_specs(env, seed=0)
+    td = env.rollout(5, break_when_any_done=False)
+    assert td["next", "observation"].shape == (3, 5, 16)
+    assert td["next", "filter_interventions"].dtype.is_floating_point is False
+    assert "filter_interventions" not in BatchedMergeEnv(num_worlds=2).observation_spec.keys()
+    marl = MultiAgentMergeEnv(num_worlds=2, seed=1, overrides=FULL)
+    check_env_specs(marl, seed=1)
+    assert marl.observation_spec["observation"].shape == (2, 16)
+
+
+def test_pettingzoo_view_is_sized_from_the_layout():
+    env = marlmerge.parallel_env(overrides=FULL)
+    assert env.observation_space(EGO_AGENT).shape == (16,)
+    parallel_api_test(env, num_cycles=60)
+    obs, infos = env.reset(seed=0)
+    assert obs[EGO_AGENT].shape == (16,) and infos[EGO_AGENT]["filter_interventions"] == 0
+    assert "filter_interventions" not in marlmerge.parallel_env().reset(seed=0)[1][EGO_AGENT]
+
+
+def test_gymnasium_views_are_sized_from_the_layout():
+    env = gymnasium.make("marlmerge/RampMerge-v1", overrides=FULL)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.shape == (16,) and obs.shape == (16,)
+    assert env.observation_space.contains(obs) and "filter_interventions" in info
+    obs, *_, info = env.step(np.array([0.5], dtype=np.float32))
+    assert obs.shape == (16,)
+    vec = gymnasium.make_vec(
+        "marlmerge/RampMerge-v1", num_envs=3, vectorization_mode="vector_entry_point",
+        overrides=FULL,
+    )  # fmt: skip
+    obs, _ = vec.reset(seed=0)
+    assert vec.single_observation_space.shape == (16,) and obs.shape == (3, 16)
+    obs, *_ = vec.step(np.zeros((3, 1), dtype=np.float32))
+    assert obs.shape == (3, 16)
+
+
+def test_rule_policies_read_the_papers_features_of_any_layout():
+    from marlmerge.baselines import GapAcceptancePolicy, IdmEgoPolicy
+
+    core = scene(ego=(-60.0, 20.0), right=[(-57.0, 25.0)], overrides=EXTENDED)
+    extended = core.observe()[0]
+    for policy in (GapAcceptancePolicy(core.cfg), IdmEgoPolicy(core.cfg)):
+        assert np.array_equal(policy(extended), policy(extended[:, :7]))
+
+
+def test_the_documented_table_is_the_spec_table():
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parent.parent / "docs" / "sensing.md").read_text()
+    rows = [line.split("|")[1:5] for line in page.splitlines() if line.startswith("| `")]
+    table = {c[0].strip().strip("`"): tuple(x.strip() for x in c[1:]) for c in rows}
+    for f in EGO_EXTENDED_FEATURES:
+        assert table.get(f.name) == (f.unit, f"{f.scale:g}", f.noise or "-"), f.name
