@@ -40,8 +40,15 @@ _ONE_THREAD = {
 
 
 def _pin_threads() -> None:
-    """A worker uses one thread: set before torch or Numba are imported in it."""
+    """A worker uses one thread: set before torch or Numba are imported in it. A forked worker
+    has Numba's config from its parent already: it is re-read now, before any thread starts
+    (Numba re-reads it when it compiles, and refuses a new thread count once threads run)."""
     os.environ.update(_ONE_THREAD)
+    if "numba" in sys.modules:
+        from numba.np.ufunc import parallel
+
+        if not parallel._is_initialized:
+            sys.modules["numba"].config.reload_config()
 
 
 def _call(fn: Callable[[T], R], task: T) -> R:

@@ -437,8 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--policy",
         action="append",
         metavar="SPEC",
-        help="hold, idm, gap, or [label=]quadq|dqn|td3:RUN_GLOB (repeatable; default: the "
-        "three rules)",
+        help="hold, idm, gap, or [label=]quadq|dqn|td3:RUN_GLOB; @filter / @nofilter after the "
+        "kind turns the safety filter on / off (gap@filter) (repeatable; default: the three rules)",
     )
     g.add_argument(
         "--condition",

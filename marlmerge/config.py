@@ -332,6 +332,47 @@ class SimConfig:
     """`reset()` without a seed keeps the road flowing and sends the next ramp vehicle."""
 
 
+Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    """Traffic drawn per world (`[sample]`): every world of a batch draws its own traffic from
+    these ranges at each of its resets, from its own seeded generator, and a fresh road every
+    `resample_every_egos` ramp vehicles (so a training batch meets many conditions). A range
+    `[low, high]` is drawn uniformly; a key left out keeps the scenario's value. Road geometry,
+    the ego's sensing and controls, the reward and the simulation settings are not sampled.
+
+    The draws (`marlmerge.sim.streams.draw_world_scenario`): the speed limit, then the mean entry
+    speed as a fraction of it (its spread kept); the adversarial share of the drivers, the
+    cooperative share of the rest (the remainder neutral); the adversarial drivers' headway and
+    speed factor; the centre c of the ramp vehicle's start speeds, drawn in (c - 3, c + 3) m/s.
+    """
+
+    flow_vph_per_lane: Range | None = None
+    speed_limit_mph: Range | None = None
+    entry_speed_fraction: Range | None = None
+    """Mean entry speed of mainline vehicles / speed limit (default scenario: 24 / 29.06)."""
+    adversarial_share: Range | None = None
+    cooperative_share: Range | None = None
+    """Share of the drivers that are not adversarial who are cooperative."""
+    adversarial_time_headway_s: Range | None = None
+    adversarial_speed_factor: Range | None = None
+    ego_start_speed_mps: Range | None = None
+    """Centre of the world's ramp-vehicle start speeds (each start drawn within +-3 m/s of it)."""
+    resample_every_egos: int = 1
+    """A world draws new traffic (on a fresh, warmed-up road) after this many ramp vehicles."""
+
+    @property
+    def active(self) -> bool:
+        """Some range is given: worlds draw their own traffic."""
+        return any(
+            getattr(self, f.name) is not None
+            for f in dataclasses.fields(self)
+            if f.name != "resample_every_egos"
+        )
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """Everything that defines a scenario. Presets in `envs/` override parts of it."""
@@ -346,6 +387,7 @@ class ScenarioConfig:
     interaction: InteractionConfig = field(default_factory=InteractionConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     sensing: SensingConfig = field(default_factory=SensingConfig)
+    sample: SampleConfig = field(default_factory=SampleConfig)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -421,7 +463,10 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
         pairs = enumerate(zip(value, args, strict=True))
         return tuple(_coerce(v, a, f"{path}[{i}]") for i, (v, a) in pairs)
     if origin in (types.UnionType, typing.Union):
-        raise TypeError(f"unsupported config type at {path!r}")
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) != 1 or len(typing.get_args(tp)) != 2:
+            raise TypeError(f"unsupported config type at {path!r}")
+        return None if value is None else _coerce(value, args[0], path)  # X | None
     if tp is bool:
         if not isinstance(value, bool):
             raise ValueError(f"config key {path!r} must be true or false, got {value!r}")
@@ -580,6 +625,20 @@ SCENARIO_RULES = {
         ],
         ">=0",
     ),
+    **dict.fromkeys(
+        [
+            "sample.speed_limit_mph",
+            "sample.entry_speed_fraction",
+            "sample.adversarial_time_headway_s",
+            "sample.adversarial_speed_factor",
+        ],
+        ">0",
+    ),
+    "sample.flow_vph_per_lane": ">=0",
+    "sample.ego_start_speed_mps": ">=0",
+    "sample.adversarial_share": "[0,1]",
+    "sample.cooperative_share": "[0,1]",
+    "sample.resample_every_egos": ">=1",
     "driver.mix_cooperative": "[0,1]",
     "driver.mix_neutral": "[0,1]",
     "driver.mix_adversarial": "[0,1]",

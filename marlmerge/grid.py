@@ -47,6 +47,7 @@ from marlmerge.registry import (  # noqa: F401 - the grid's policies, re-exporte
     PolicySpec,
     make_policy,
     parse_policy,
+    scenario_for,
 )
 
 
@@ -161,7 +162,7 @@ def run_cell(cell: Cell) -> list[dict]:
     """The rows of one cell (runs anywhere: a pure function of the cell)."""
     from marlmerge.learned_highway import load_highway_policy
 
-    scen = resolve_config(cell.condition.preset)
+    scen = scenario_for(cell.policy, cell.run, resolve_config(cell.condition.preset))
     policy = make_policy(cell.policy, cell.run, scen)
     rec, traces = rollout_first_egos(
         policy,

@@ -5,7 +5,14 @@ Specs:
 - `hold` (keep speed), `idm` (car following that ignores the merge), `gap` (gap acceptance);
 - `[label=]KIND:GLOB` with KIND `quadq`, `dqn` or `td3`: the run folders (or `policy.pt` files)
   GLOB matches, one per training seed; each file must hold a policy of that algorithm;
-- a run folder or a `policy.pt` of any algorithm (`policy_from_spec`).
+- a run folder or a `policy.pt` of any algorithm (`policy_from_spec`);
+- any of these with `@filter` or `@nofilter` after the kind (`gap@filter`,
+  `quadq@nofilter:runs/robust_s*`): with or without the core's safety filter
+  (`ego.safety_filter`), whatever the policy was trained with.
+
+A learned policy drives with the ego-side settings it was trained with (`EGO_SIDE_KEYS`: its
+observation layout and its safety filter), whatever the traffic condition it meets: the
+condition sets the traffic, the road and the sensors; `scenario_for` puts the two together.
 
 Saved policies are read by `marlmerge.learners.baselines_rl.load_policy` in the one file
 format of `marlmerge.policy_file`.
@@ -24,6 +31,15 @@ from marlmerge.evaluate import EgoPolicy
 
 RULE_POLICIES = ("hold", "idm", "gap")
 LEARNED_KINDS = ("quadq", "dqn", "td3")
+FILTER_MODIFIERS = {"filter": True, "nofilter": False}
+EGO_SIDE_KEYS = (
+    "ego.observation",
+    "ego.time_to_merge_cap_s",
+    "ego.safety_filter",
+    "ego.safety_min_headway_s",
+    "ego.safety_min_gap_m",
+)
+"""What belongs to the driver rather than to the traffic: a learned policy keeps these."""
 
 
 @dataclass(frozen=True)
@@ -33,15 +49,21 @@ class PolicySpec:
     name: str
     kind: str
     runs: tuple[str, ...] = ()
+    safety_filter: bool | None = None
+    """`@filter` / `@nofilter`: the core's safety filter on / off; None: as trained (rules: off)."""
 
 
 def parse_policy(spec: str) -> PolicySpec:
     """`hold`, `idm`, `gap`, or `[label=]KIND:GLOB` (see the module docstring); every matched
     run must hold a policy file of KIND."""
     label, _, body = spec.rpartition("=")
-    kind, _, pattern = body.partition(":")
+    head, _, pattern = body.partition(":")
+    kind, _, modifier = head.partition("@")
+    if modifier and modifier not in FILTER_MODIFIERS:
+        raise ValueError(f"policy {spec!r}: unknown modifier @{modifier} (@filter or @nofilter)")
+    flt = FILTER_MODIFIERS.get(modifier)
     if kind in RULE_POLICIES and not pattern:
-        return PolicySpec(label or kind, kind)
+        return PolicySpec(label or head, kind, safety_filter=flt)
     if kind in LEARNED_KINDS and pattern:
         from marlmerge.policy_file import read_policy
 
@@ -54,7 +76,7 @@ def parse_policy(spec: str) -> PolicySpec:
             algorithm = read_policy(run, "ego")["algorithm"]
             if algorithm != kind:
                 raise ValueError(f"policy {spec!r}: {run!r} holds a {algorithm} policy")
-        return PolicySpec(label or kind, kind, runs)
+        return PolicySpec(label or head, kind, runs, flt)
     raise ValueError(
         f"unknown policy {spec!r} (use one of {', '.join(RULE_POLICIES)}, or "
         f"[label=]{'|'.join(LEARNED_KINDS)}:RUN_GLOB)"
@@ -76,6 +98,21 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
         "gap": GapAcceptancePolicy(scenario),
     }[spec.kind]
     return lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)
+
+
+def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -> ScenarioConfig:
+    """The scenario a policy meets in a traffic condition: the condition, with the ego-side
+    settings the (learned) policy was trained with and the filter its spec asks for."""
+    changes = {}
+    if run is not None:
+        from marlmerge.config import get_dotted
+        from marlmerge.learners.baselines_rl import load_scenario_of
+
+        trained = load_scenario_of(run)
+        changes = {key: get_dotted(trained, key) for key in EGO_SIDE_KEYS}
+    if spec.safety_filter is not None:
+        changes["ego.safety_filter"] = spec.safety_filter
+    return condition.replace(**changes) if changes else condition
 
 
 def policy_from_spec(spec: str, scenario: ScenarioConfig) -> EgoPolicy:

@@ -156,3 +156,36 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
     # same roads, different drivers: the braking agents change what the ego meets
     assert [r["min_ttc_front_s"] for r in learned[:4]] != [r["min_ttc_front_s"] for r in scripted]
     assert "braking" in (tmp_path / "g" / "summary.md").read_text()
+
+
+def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(tmp_path):
+    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.registry import scenario_for
+
+    extended = tmp_path / "extended.toml"
+    extended.write_text('name = "extended"\n[ego]\nobservation = "extended"\n')
+    run = tmp_path / "run"
+    train(
+        TrainConfig(
+            scenario=str(extended), total_sim_steps=1_024, num_worlds=8, learning_starts=256,
+            update_path="fast", eval_episodes=0,
+        ),
+        run,
+        progress=False,
+    )  # fmt: skip
+    condition = resolve_config("grid_dense_adversarial")
+    spec = parse_policy(f"quadq:{run}")
+    met = scenario_for(spec, str(run), condition)
+    assert met.ego.observation == "extended" and not met.ego.safety_filter
+    assert met.traffic == condition.traffic and met.name == condition.name  # the same roads
+    assert scenario_for(parse_policy(f"quadq@filter:{run}"), str(run), condition).ego.safety_filter
+    gap = parse_policy("gap@filter")
+    assert gap.name == "gap@filter" and scenario_for(gap, None, condition).ego.safety_filter
+    assert scenario_for(parse_policy("gap"), None, condition) == condition
+    with pytest.raises(ValueError, match="@careful"):
+        parse_policy("gap@careful")
+    rows = run_grid(
+        [parse_policy(f"quadq:{run}"), gap], ["grid_light_mixed"], episodes=2, worlds=2,
+        out_dir=tmp_path / "grid", progress=False,
+    ).rows  # fmt: skip
+    assert {r["policy"] for r in rows} == {"quadq", "gap@filter"}

@@ -72,6 +72,22 @@ def test_workers_are_forked_only_before_a_parallel_kernel_ran(tmp_path):
     assert out.stdout.split() == (["fork", "spawn"] if sys.platform == "linux" else ["spawn"] * 2)
 
 
+def test_forked_workers_compile_the_kernels_they_need(tmp_path):
+    # workers that compile (an empty kernel cache: a fresh install) re-read Numba's config
+    # before any thread starts, so compiling does not trip over the one-thread setting
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    args = ["grid", "--policy", "hold", "--condition", "grid_light_mixed", "--episodes", "2"]
+    args += ["--worlds", "2", "--out", str(tmp_path / "grid"), "--no-progress"]
+    run = subprocess.run(
+        [sys.executable, "-m", "marlmerge", *args], env=env, capture_output=True, text=True
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert (tmp_path / "grid" / "episodes.csv").exists()
+
+
 def test_ray_backend_gives_the_serial_csv_byte_for_byte(tmp_path, serial_csv):
     ray = pytest.importorskip("ray")
     try:

@@ -26,7 +26,13 @@ from marlmerge.sim import kernels
 from marlmerge.sim import layout as L
 from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
 from marlmerge.sim.state import EgoGaps, Rollout, Roster, StepEvents, TrafficState
-from marlmerge.sim.streams import CHUNK, Streams, world_seed_sequences
+from marlmerge.sim.streams import (
+    CHUNK,
+    SCENARIO_STREAM,
+    Streams,
+    draw_world_scenario,
+    world_seed_sequences,
+)
 from marlmerge.spec.observation import (
     HIGHWAY_FEATURES,
     POSITION_SCALE_M,
@@ -108,7 +114,8 @@ class TrafficCore:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.cfg = cfg
         self.batch_size = batch_size
-        self.params = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S)
+        row = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S)
+        self.params = np.tile(row, (batch_size, 1))  # [B, P]: each world's parameters
         self.v_limit = cfg.road.speed_limit_mps
         self.ego_features = ego_features(cfg)
         """The ego's observation layout (`ego.observation`)."""
@@ -283,6 +290,8 @@ class TrafficCore:
         sel[rows] = True
         self._clear(rows)
         for b in rows:
+            if self.cfg.sample.active:
+                self._draw_scenario(b)
             self._place(b, self.streams.fill(b))
         kernels.rebuild_lanes(self.arrays, self.params, sel)
         n_warm = int(round(self.cfg.traffic.warmup_s / self.cfg.sim.dt_s))
@@ -293,6 +302,19 @@ class TrafficCore:
             self._call(nan, k, self._no_roster, self._no_cmd, sel)
             done += k
         self.next_ego(sel)
+
+    def _draw_scenario(self, b: int) -> None:
+        """World `b` draws its traffic (`[sample]`) for the road it is about to get."""
+        cfg = draw_world_scenario(self.cfg, self.streams.gens[b][SCENARIO_STREAM])
+        self._set_world_scenario(b, cfg)
+
+    def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:
+        self.streams.cfgs[b] = cfg
+        self.params[b] = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S)
+
+    def world_scenario(self, b: int) -> ScenarioConfig:
+        """The scenario world `b` runs now: the core's, or the traffic it drew (`[sample]`)."""
+        return self.streams.cfgs[b]
 
     def _clear(self, rows: np.ndarray) -> None:
         self.vf[rows] = 0.0
@@ -334,6 +356,13 @@ class TrafficCore:
         sel = self._mask(mask)
         if not sel.any():
             return
+        if self.cfg.sample.active:  # worlds that drew their traffic long enough get new traffic
+            redraw = sel & (self.wi[:, L.WI_EGO_COUNT] >= self.cfg.sample.resample_every_egos)
+            if redraw.any():
+                self.reset(mask=redraw)
+                sel = sel & ~redraw
+                if not sel.any():
+                    return
         rows = np.flatnonzero(sel)
         short = (self.wi[rows, L.WI_COUNT_RIGHT + EGO_STREAM] < 1) | (
             self.wi[rows, L.WI_N_ACTIVE] + 2 >= self.n_slots
@@ -619,6 +648,9 @@ class TrafficCore:
             "arrays": {name: getattr(self, name).copy() for name in _ARRAYS},
             "generators": [[g.bit_generator.state for g in gens] for gens in self.streams.gens],
             "served_k": self._served_k,
+            "world_scenarios": (
+                [to_dict(c) for c in self.streams.cfgs] if self.cfg.sample.active else []
+            ),
         }
 
     def load_state_dict(self, saved: dict[str, Any]) -> None:
@@ -655,6 +687,8 @@ class TrafficCore:
             for g, s in zip(gens, states, strict=True):
                 g.bit_generator.state = s
         self._served_k = int(saved["served_k"])
+        for b, world in enumerate(saved.get("world_scenarios", [])):
+            self._set_world_scenario(b, from_dict(ScenarioConfig, world))
         self._check_lanes()
 
     def _check_lanes(self) -> None:

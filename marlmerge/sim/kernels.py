@@ -10,6 +10,10 @@ With imperfect sensing (`[sensing]`) the ego's sensor measures after every simul
 the observation is the delayed measurement (`marlmerge.sim.sensing`); `X = (ring, noise)` is its
 state (`marlmerge.sim.layout`).
 
+The calls over many worlds take the parameters per world, `p [B, P]` (`marlmerge.sim.layout.P`;
+every row the same unless the worlds draw their own traffic, `[sample]`), and hand world `b` its
+row `p[b]`.
+
 The drivers return how many worlds need the Python side before another call of the same `k`
 (more slots, more drawn arrivals or ego departures): the core serves them between calls.
 """
@@ -353,7 +357,7 @@ def rollout(
             S,
             X,
             b,
-            p,
+            p[b],
             k,
             step_mask,
             ego_cmd,
@@ -421,7 +425,7 @@ def observe(
 ) -> None:
     """`observe_world` for every world."""
     for b in range(S[0].shape[0]):
-        observe_world(S, X, b, p, roster, ego_obs, hw_obs)
+        observe_world(S, X, b, p[b], roster, ego_obs, hw_obs)
 
 
 @kernel
@@ -431,7 +435,7 @@ def sense_restart(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     vf, vi, wf, wi, lanes, sched = S
     for b in range(vf.shape[0]):
         if mask[b] and vi[b, VI_ACTIVE, EGO] == 1:
-            sense_fill(S, X, b, p)
+            sense_fill(S, X, b, p[b])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -531,7 +535,7 @@ def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """`next_ego_world` for the worlds of `mask`."""
     for b in range(S[0].shape[0]):
         if mask[b]:
-            next_ego_world(S, X, b, p)
+            next_ego_world(S, X, b, p[b])
 
 
 @kernel
@@ -539,7 +543,7 @@ def remove_ego(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """`remove_ego_world` for the worlds of `mask`."""
     for b in range(S[0].shape[0]):
         if mask[b]:
-            remove_ego_world(S, b, p)
+            remove_ego_world(S, b, p[b])
 
 
 @kernel
@@ -595,5 +599,5 @@ def rebuild_lanes(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
         if vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP:
             n_active += 1
         wi[b, WI_N_ACTIVE] = n_active
-        neighbours(S, b, p)
-        ego_gaps(S, b, p)
+        neighbours(S, b, p[b])
+        ego_gaps(S, b, p[b])

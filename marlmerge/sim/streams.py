@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import MPH_TO_MPS, ScenarioConfig
 from marlmerge.sim.drivers import entry_speed
 from marlmerge.sim.layout import (
     EGO_STREAM,
@@ -44,6 +44,11 @@ FILL_STREAM = 3
 N_STREAMS = 4
 NOISE_STREAM = 4
 """The sensor's stream, spawned only when its noise is on."""
+SCENARIO_STREAM = 5
+"""The stream of a world's drawn traffic (`[sample]`), spawned only when sampling is on."""
+START_SPEED_HALF_WIDTH_MPS = 3.0
+"""A world's ramp vehicles start within +- this of its drawn centre, m/s
+(`sample.ego_start_speed_mps`)."""
 
 
 WorldSeed = int | np.random.SeedSequence
@@ -79,9 +84,12 @@ class Streams:
     """The generators of B worlds and what they draw."""
 
     def __init__(self, cfg: ScenarioConfig, batch_size: int):
-        self.cfg = cfg
+        self.cfgs = [cfg] * batch_size
+        """Each world's scenario: `cfg`, or the traffic it drew (`[sample]`)."""
         self.gens: list[list[np.random.Generator]] = [[] for _ in range(batch_size)]
         self.n_streams = N_STREAMS + 1 if cfg.sensing.noisy else N_STREAMS
+        if cfg.sample.active:
+            self.n_streams = SCENARIO_STREAM + 1
 
     def seed(self, rows: np.ndarray, sequences: list[np.random.SeedSequence]) -> None:
         for b, seq in zip(rows, sequences, strict=True):
@@ -91,43 +99,45 @@ class Streams:
             self.gens[b] = [np.random.default_rng(c) for c in fresh.spawn(self.n_streams)]
 
     # ------------------------------------------------------------------ drawn vehicles
-    def _drivers(self, g: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
-        d = self.cfg.driver
-        v0 = g.uniform(*d.desired_speed_factor, size=n) * self.cfg.road.speed_limit_mps
+    def _drivers(
+        self, cfg: ScenarioConfig, g: np.random.Generator, n: int
+    ) -> tuple[np.ndarray, ...]:
+        d = cfg.driver
+        v0 = g.uniform(*d.desired_speed_factor, size=n) * cfg.road.speed_limit_mps
         headway = g.uniform(*d.time_headway_s, size=n)
         politeness = g.uniform(*d.politeness, size=n)
         return v0, headway, politeness
 
-    def _entry_speed(self, g: np.random.Generator, n: int) -> np.ndarray:
-        mean, std = self.cfg.traffic.entry_speed_mps
+    def _entry_speed(self, cfg: ScenarioConfig, g: np.random.Generator, n: int) -> np.ndarray:
+        mean, std = cfg.traffic.entry_speed_mps
         return np.clip(g.normal(mean, std, size=n), mean - 2 * std, mean + 2 * std)
 
-    def _profiles(self, g: np.random.Generator, n: int) -> np.ndarray:
-        mix = np.asarray(self.cfg.driver.mix)
+    def _profiles(self, cfg: ScenarioConfig, g: np.random.Generator, n: int) -> np.ndarray:
+        mix = np.asarray(cfg.driver.mix)
         return g.choice(3, size=n, p=mix / mix.sum()).astype(np.float64)
 
     def arrivals(self, b: int, lane: int, t_last_s: float) -> np.ndarray:
         """The next `CHUNK` arrivals of `lane` after `t_last_s`, [CHUNK, SC_COLS]. The entry speed
         is drawn from `traffic.entry_speed_mps` and capped at the driver's desired speed."""
-        g = self.gens[b][lane]
-        flow = self.cfg.traffic.flow_vph_per_lane
+        g, cfg = self.gens[b][lane], self.cfgs[b]
+        flow = cfg.traffic.flow_vph_per_lane
         out = np.empty((CHUNK, SC_COLS))
         if flow > 0:
             out[:, SC_T] = t_last_s + np.cumsum(g.exponential(3600.0 / flow, size=CHUNK))
         else:
             out[:, SC_T] = np.inf
-        out[:, SC_V] = self._entry_speed(g, CHUNK)
-        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(g, CHUNK)
-        out[:, SC_PROFILE] = self._profiles(g, CHUNK)
+        out[:, SC_V] = self._entry_speed(cfg, g, CHUNK)
+        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(cfg, g, CHUNK)
+        out[:, SC_PROFILE] = self._profiles(cfg, g, CHUNK)
         out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])  # nobody enters above its v0
         return out
 
     def departures(self, b: int) -> np.ndarray:
         """The next `CHUNK` egos: start speed and the driver they become once merged."""
-        g = self.gens[b][EGO_STREAM]
+        g, cfg = self.gens[b][EGO_STREAM], self.cfgs[b]
         out = np.zeros((CHUNK, SC_COLS))
-        out[:, SC_V] = g.uniform(*self.cfg.ego.start_speed_mps, size=CHUNK)
-        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(g, CHUNK)
+        out[:, SC_V] = g.uniform(*cfg.ego.start_speed_mps, size=CHUNK)
+        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(cfg, g, CHUNK)
         out[:, SC_PROFILE] = NEUTRAL
         return out
 
@@ -142,7 +152,7 @@ class Streams:
         (jam gap + the longest desired headway), each at a speed `entry_speed` allows behind its
         leader. Arrays of the kept vehicles, downstream first
         per lane: x_m, v_mps, lane, v0_mps, headway_s, politeness, profile."""
-        cfg = self.cfg
+        cfg = self.cfgs[b]
         g = self.gens[b][FILL_STREAM]
         flow = cfg.traffic.flow_vph_per_lane
         length, s0 = cfg.vehicle.length_m, cfg.driver.min_gap_m
@@ -151,10 +161,10 @@ class Streams:
         cols: dict[str, list[np.ndarray]] = {k: [] for k in _FILL_KEYS}
         for lane in (RIGHT, LEFT):
             h = g.exponential(3600.0 / flow, size=per_lane) if flow > 0 else np.zeros(per_lane)
-            v = self._entry_speed(g, per_lane)
-            v0, headway, politeness = self._drivers(g, per_lane)
+            v = self._entry_speed(cfg, g, per_lane)
+            v0, headway, politeness = self._drivers(cfg, g, per_lane)
             v = np.minimum(v, v0)
-            profile = self._profiles(g, per_lane)
+            profile = self._profiles(cfg, g, per_lane)
             first = g.uniform()
             if flow <= 0:
                 continue
@@ -180,6 +190,44 @@ class Streams:
             cols["politeness"].append(politeness[idx])
             cols["profile"].append(profile[idx])
         return {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+
+
+def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> ScenarioConfig:
+    """A world's traffic drawn from `base.sample` (see `marlmerge.config.SampleConfig`): every
+    range drawn in a fixed order, so a world's scenarios depend on its seed alone."""
+    smp, d = base.sample, base.driver
+
+    def draw(rng: tuple[float, float] | None) -> float | None:
+        return None if rng is None else float(g.uniform(*rng))
+
+    flow, limit, frac = (
+        draw(smp.flow_vph_per_lane),
+        draw(smp.speed_limit_mph),
+        draw(smp.entry_speed_fraction),
+    )
+    adv, coop_share = draw(smp.adversarial_share), draw(smp.cooperative_share)
+    adv_hw, adv_v = draw(smp.adversarial_time_headway_s), draw(smp.adversarial_speed_factor)
+    start = draw(smp.ego_start_speed_mps)
+    changes: dict[str, object] = {
+        "traffic.flow_vph_per_lane": flow,
+        "road.speed_limit_mph": limit,
+        "driver.adversarial_time_headway_s": adv_hw,
+        "driver.adversarial_speed_factor": adv_v,
+    }
+    if frac is not None:
+        limit_mps = (base.road.speed_limit_mph if limit is None else limit) * MPH_TO_MPS
+        changes["traffic.entry_speed_mps"] = [frac * limit_mps, base.traffic.entry_speed_mps[1]]
+    if adv is not None or coop_share is not None:
+        adv = d.mix_adversarial / sum(d.mix) if adv is None else adv
+        if coop_share is None:
+            coop_share = d.mix_cooperative / max(d.mix_cooperative + d.mix_neutral, 1e-12)
+        changes["driver.mix_adversarial"] = adv
+        changes["driver.mix_cooperative"] = (1.0 - adv) * coop_share
+        changes["driver.mix_neutral"] = (1.0 - adv) * (1.0 - coop_share)
+    if start is not None:
+        half = START_SPEED_HALF_WIDTH_MPS
+        changes["ego.start_speed_mps"] = [max(start - half, 0.0), start + half]
+    return base.replace(**{k: v for k, v in changes.items() if v is not None})
 
 
 _FILL_KEYS = ("x_m", "v_mps", "lane", "v0_mps", "headway_s", "politeness", "profile")
