@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from marlmerge.backends import check_backend, run_tasks
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.evaluate import rollout_first_egos
 from marlmerge.files import write_text
 from marlmerge.metrics import aggregate, episode_metrics
@@ -67,19 +67,36 @@ class Condition:
     preset: str
     label: str
     highway: tuple[str, ...] = ()
+    sensing: str | None = None
+    """A preset whose `[sensing]` (noise, latency, occlusion) the ego's sensor has here."""
+
+    def scenario(self) -> ScenarioConfig:
+        """The preset, with the sensors of `sensing` (same roads: the name is the preset's)."""
+        scen = resolve_config(self.preset)
+        if self.sensing is None:
+            return scen
+        sensors = to_dict(resolve_config(self.sensing).sensing)
+        return scen.replace(**{f"sensing.{k}": v for k, v in sensors.items()})
 
 
 def parse_condition(spec: str) -> Condition:
-    """`PRESET` or `[label=]PRESET+highway:GLOB` (GLOB matches run folders holding a
-    `highway_policy.pt`, or such files)."""
+    """`PRESET`, `[label=]PRESET+highway:GLOB` (GLOB matches run folders holding a
+    `highway_policy.pt`, or such files) or `[label=]PRESET+sensing:SENSING_PRESET` (the ego's
+    sensor of that preset's `[sensing]` on the preset's roads)."""
     label, _, body = spec.rpartition("=")
     preset, plus, learned = body.partition("+")
     scen = resolve_config(preset)
     if not plus:
         return Condition(preset, label or condition_label(scen))
     kind, _, pattern = learned.partition(":")
+    if kind == "sensing" and pattern:
+        resolve_config(pattern)  # a clear error now for an unknown preset
+        return Condition(preset, label or f"{condition_label(scen)} + sensing", sensing=pattern)
     if kind != "highway" or not pattern:
-        raise ValueError(f"unknown condition {spec!r} (use PRESET or [label=]PRESET+highway:GLOB)")
+        raise ValueError(
+            f"unknown condition {spec!r} (use PRESET, [label=]PRESET+highway:GLOB or "
+            "[label=]PRESET+sensing:PRESET)"
+        )
     found = tuple(
         m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")
     ) or (pattern,)
@@ -98,15 +115,17 @@ def default_conditions() -> list[str]:
 
 def expand_conditions(specs: Sequence[str]) -> list[str]:
     """Condition specs with preset-name globs expanded in the grid's order: `grid_*` is every
-    `envs/grid_*.toml`, `grid_dense_*` the dense ones; other specs pass through."""
+    `envs/grid_*.toml`, `grid_dense_*` the dense ones, `grid_*+sensing:sensing_realistic` each of
+    them with that sensor; other specs pass through."""
     envs = find_preset("default").parent
     out: list[str] = []
     for spec in specs:
-        if "*" in spec and "+" not in spec and "/" not in spec:
-            found = sorted(envs.glob(f"{spec.removesuffix('.toml')}.toml"), key=_condition_order)
+        head, plus, tail = spec.partition("+")
+        if "*" in head and "/" not in head and "=" not in head:
+            found = sorted(envs.glob(f"{head.removesuffix('.toml')}.toml"), key=_condition_order)
             if not found:
                 raise ValueError(f"condition {spec!r} matches no preset in {envs}")
-            out += [str(p) for p in found]
+            out += [str(p) + plus + tail for p in found]
         else:
             out.append(spec)
     return out
@@ -162,7 +181,7 @@ def run_cell(cell: Cell) -> list[dict]:
     """The rows of one cell (runs anywhere: a pure function of the cell)."""
     from marlmerge.learned_highway import load_highway_policy
 
-    scen = scenario_for(cell.policy, cell.run, resolve_config(cell.condition.preset))
+    scen = scenario_for(cell.policy, cell.run, cell.condition.scenario())
     policy = make_policy(cell.policy, cell.run, scen)
     rec, traces = rollout_first_egos(
         policy,
@@ -293,6 +312,38 @@ def _table(rows: list[dict], policies: list[str], conds: list[str], cell) -> lis
     return lines
 
 
+def _overall_table(rows: list[dict], policies: list[str], conds: list[str]) -> list[str]:
+    """Per policy: success / collision / truncation over all conditions, the worst condition
+    (pooled over runs) and the worst (training run, condition), by success rate."""
+    lines = [
+        "| policy | episodes | success % | collision % | truncation % | worst condition | "
+        "worst run in a condition | time to merge (s) | max jerk (m/s³) |",
+        "|---" * 9 + "|",
+    ]
+    for p in policies:
+        mine = [r for r in rows if r["policy"] == p]
+        rate = {k: float(np.mean([float(r[k]) for r in mine])) for k in _OUTCOMES}
+        cells: dict[tuple[str, str], list[float]] = {}
+        for r in mine:
+            cells.setdefault((r["run"], r["condition"]), []).append(float(r["success"]))
+        pooled = {c: float(np.mean(_cell(rows, p, c, "success"))) for c in conds}
+        worst_c = min(pooled, key=pooled.get)
+        (run, cond), worst = min(
+            ((k, float(np.mean(v))) for k, v in cells.items()), key=lambda kv: kv[1]
+        )
+        lines.append(
+            f"| {p} | {len(mine)} | {100 * rate['success']:.2f} | {100 * rate['collision']:.2f} | "
+            f"{100 * rate['truncation']:.2f} | {worst_c}: {100 * pooled[worst_c]:.1f} | "
+            f"{Path(run).name} in {cond}: {100 * worst:.1f} | "
+            f"{_fmt_mean(np.array([float(r['time_to_merge_s']) for r in mine]))} | "
+            f"{_fmt_mean(np.array([float(r['max_abs_jerk_mps3']) for r in mine]))} |"
+        )
+    return lines
+
+
+_OUTCOMES = ("success", "collision", "truncation")
+
+
 def summary_markdown(
     rows: list[dict],
     policies: list[str],
@@ -312,6 +363,10 @@ def summary_markdown(
         f"cells run here on the {result.backend} backend in {result.wall_s:.0f} s "
         f"({result.episodes_per_s:.1f} episodes/s).",
         "Rates in % with 95 % Wilson intervals; means with 95 % half-widths.",
+        "",
+        "## Overall: every condition pooled, and the worst cell",
+        "",
+        *_overall_table(rows, policies, conds),
         "",
         "## Success % / collision %",
         "",

@@ -189,3 +189,18 @@ def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(t
         out_dir=tmp_path / "grid", progress=False,
     ).rows  # fmt: skip
     assert {r["policy"] for r in rows} == {"quadq", "gap@filter"}
+
+
+def test_a_sensing_condition_keeps_the_roads_and_changes_the_sensor():
+    from marlmerge.grid import parse_condition
+
+    specs = expand_conditions(["grid_dense_*+sensing:sensing_realistic"])
+    assert len(specs) == 4 and all(s.endswith("+sensing:sensing_realistic") for s in specs)
+    plain = parse_condition(expand_conditions(["grid_dense_mixed"])[0])
+    noisy = parse_condition(specs[-1])
+    assert noisy.label == "dense mixed + sensing"
+    a, b = plain.scenario(), noisy.scenario()
+    assert a.name == b.name and a.traffic == b.traffic and a.driver == b.driver
+    assert b.sensing.occlusion and b.sensing.position_noise_std_m > 0 and not a.sensing.active
+    with pytest.raises(ValueError, match="no_such_sensor"):
+        parse_condition("grid_dense_mixed+sensing:no_such_sensor")
