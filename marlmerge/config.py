@@ -345,7 +345,8 @@ class SampleConfig:
 
     The draws (`marlmerge.sim.streams.draw_world_scenario`): the speed limit, then the mean entry
     speed as a fraction of it (its spread kept); the adversarial share of the drivers, the
-    cooperative share of the rest (the remainder neutral); the adversarial drivers' headway and
+    cooperative share of the rest (the remainder neutral), or, for a `pure_mix_fraction` of the
+    draws, drivers of one profile only; the adversarial drivers' headway and
     speed factor; the centre c of the ramp vehicle's start speeds, drawn in (c - 3, c + 3) m/s.
     """
 
@@ -360,16 +361,19 @@ class SampleConfig:
     adversarial_speed_factor: Range | None = None
     ego_start_speed_mps: Range | None = None
     """Centre of the world's ramp-vehicle start speeds (each start drawn within +-3 m/s of it)."""
+    pure_mix_fraction: float = 0.0
+    """Share of draws whose drivers are all of one profile (neutral, cooperative or adversarial,
+    equally likely), as in the grid's pure cells; the other draws use the shares above."""
     resample_every_egos: int = 1
     """A world draws new traffic (on a fresh, warmed-up road) after this many ramp vehicles."""
 
     @property
     def active(self) -> bool:
         """Some range is given: worlds draw their own traffic."""
-        return any(
+        return self.pure_mix_fraction > 0.0 or any(
             getattr(self, f.name) is not None
             for f in dataclasses.fields(self)
-            if f.name != "resample_every_egos"
+            if f.name not in ("resample_every_egos", "pure_mix_fraction")
         )
 
 
@@ -638,6 +642,7 @@ SCENARIO_RULES = {
     "sample.ego_start_speed_mps": ">=0",
     "sample.adversarial_share": "[0,1]",
     "sample.cooperative_share": "[0,1]",
+    "sample.pure_mix_fraction": "[0,1]",
     "sample.resample_every_egos": ">=1",
     "driver.mix_cooperative": "[0,1]",
     "driver.mix_neutral": "[0,1]",

@@ -344,6 +344,32 @@ def _overall_table(rows: list[dict], policies: list[str], conds: list[str]) -> l
 _OUTCOMES = ("success", "collision", "truncation")
 
 
+def _runs_table(rows: list[dict], policies: list[str], conds: list[str]) -> list[str]:
+    """Per training run of the policies that have several: success and collision over every
+    condition, and its worst condition (empty if no policy has several runs)."""
+    lines = [
+        "## Per training run",
+        "",
+        "| policy | run | success % | collision % | worst condition |",
+        "|---|---|---|---|---|",
+    ]
+    for p in policies:
+        runs = list(dict.fromkeys(r["run"] for r in rows if r["policy"] == p))
+        if len(runs) < 2:
+            continue
+        for run in runs:
+            mine = [r for r in rows if r["policy"] == p and r["run"] == run]
+            succ = {c: [float(r["success"]) for r in mine if r["condition"] == c] for c in conds}
+            worst = min(conds, key=lambda c: float(np.mean(succ[c])))
+            lines.append(
+                f"| {p} | {Path(run).name} | "
+                f"{100 * np.mean([float(r['success']) for r in mine]):.2f} | "
+                f"{100 * np.mean([float(r['collision']) for r in mine]):.2f} | "
+                f"{worst}: {100 * np.mean(succ[worst]):.1f} |"
+            )
+    return [*lines, ""] if len(lines) > 4 else []
+
+
 def summary_markdown(
     rows: list[dict],
     policies: list[str],
@@ -368,6 +394,7 @@ def summary_markdown(
         "",
         *_overall_table(rows, policies, conds),
         "",
+        *_runs_table(rows, policies, conds),
         "## Success % / collision %",
         "",
         *_table(

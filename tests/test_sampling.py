@@ -120,3 +120,18 @@ def test_bad_ranges_name_the_key():
     with pytest.raises(ValueError, match="sample.resample_every_egos"):
         _cfg(**{"sample.resample_every_egos": 0})
     assert resolve_config("robust_mix").sample.active
+
+
+def test_a_share_of_draws_has_drivers_of_one_profile():
+    cfg = _cfg(**{"sample.pure_mix_fraction": 0.5})
+    core = TrafficCore(cfg, batch_size=64, seed=4)
+    mixes = [core.world_scenario(b).driver.mix for b in range(64)]
+    pure = [m for m in mixes if sorted(m) == [0.0, 0.0, 1.0]]
+    assert 20 <= len(pure) <= 44  # about half of 64
+    assert {m.index(1.0) for m in pure} == {0, 1, 2}  # every profile appears
+    # without it, the first draws of a world are those of the recipe without pure mixes
+    plain = TrafficCore(_cfg(), batch_size=4, seed=4)
+    with_pure = TrafficCore(cfg, batch_size=4, seed=4)
+    for b in range(4):
+        a, p = plain.world_scenario(b), with_pure.world_scenario(b)
+        assert a.traffic == p.traffic and a.road == p.road

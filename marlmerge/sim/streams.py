@@ -227,6 +227,10 @@ def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> Scenari
     if start is not None:
         half = START_SPEED_HALF_WIDTH_MPS
         changes["ego.start_speed_mps"] = [max(start - half, 0.0), start + half]
+    if smp.pure_mix_fraction > 0.0 and g.uniform() < smp.pure_mix_fraction:
+        pure = ("mix_neutral", "mix_cooperative", "mix_adversarial")[int(g.integers(3))]
+        for key in ("mix_neutral", "mix_cooperative", "mix_adversarial"):
+            changes[f"driver.{key}"] = 1.0 if key == pure else 0.0
     return base.replace(**{k: v for k, v in changes.items() if v is not None})
 
 
