@@ -20,7 +20,12 @@ import numpy as np
 from marlmerge.config import ScenarioConfig
 from marlmerge.sim import LEFT, TrafficCore
 from marlmerge.sim.layout import SC_T, SC_T_HW, SC_V, SC_V0
-from marlmerge.sim.streams import Streams, world_seed_sequences
+from marlmerge.sim.streams import (
+    SCENARIO_STREAM,
+    Streams,
+    draw_world_scenario,
+    world_seed_sequences,
+)
 from marlmerge.validation.measure import FlowSamples
 
 FLOWS_VPHPL = (600.0, 1200.0, 1800.0, 2400.0)
@@ -142,10 +147,13 @@ def flow_config(cfg: ScenarioConfig, flow_vphpl: float) -> ScenarioConfig:
 
 
 def drawn_arrivals(cfg: ScenarioConfig, seed: int, duration_s: float) -> list[np.ndarray]:
-    """The arrivals a world seeded `seed` draws for each lane up to `duration_s`: per lane an
-    array [n, 4] of (time s, entry speed m/s, desired speed m/s, time headway s)."""
+    """The arrivals a world seeded `seed` draws for each lane up to `duration_s` (with `[sample]`,
+    in the traffic it draws first): per lane an array [n, 4] of (time s, entry speed m/s, desired
+    speed m/s, time headway s)."""
     streams = Streams(cfg, 1)
     streams.seed(np.array([0]), world_seed_sequences(1, [seed], np.array([0])))
+    if cfg.sample.active:  # the traffic the world draws at its first reset
+        streams.cfgs[0] = draw_world_scenario(cfg, streams.gens[0][SCENARIO_STREAM])
     out = []
     for lane in range(2):
         chunks, t_last = [], 0.0
