@@ -725,6 +725,11 @@ def validate(cfg: ScenarioConfig) -> None:
         ),
         *_sensing_checks(cfg),
     ]
+    require(checks)
+
+
+def require(checks: list[tuple[bool, str]]) -> None:
+    """Raise `ValueError` with the message of the first check that fails."""
     for ok, msg in checks:
         if not ok:
             raise ValueError(msg)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from marlmerge.config import check_values
+from marlmerge.config import check_values, require
 from marlmerge.learners.baselines_rl import ALGORITHMS
 from marlmerge.learners.quadq import PAPER_GAMMA
 
@@ -46,12 +46,6 @@ TRAIN_RULES = {
     "td3.target_noise_clip": ">=0",
 }
 """... and of a `TrainConfig`."""
-
-
-def _require(checks: list[tuple[bool, str]]) -> None:
-    for ok, msg in checks:
-        if not ok:
-            raise ValueError(msg)
 
 
 @dataclass(frozen=True)
@@ -105,7 +99,7 @@ class RunConfig:
 
     def _check(self, rules: dict[str, str]) -> None:
         check_values(self, rules)
-        _require(
+        require(
             [
                 (
                     self.replay_capacity >= self.batch_size,
@@ -185,7 +179,7 @@ class TrainConfig(RunConfig):
 
     def __post_init__(self) -> None:
         self._check(TRAIN_RULES)
-        _require(
+        require(
             [
                 (
                     self.algorithm in ALGORITHMS,
