@@ -44,7 +44,7 @@ from marlmerge.sim import (
     Roster,
     TrafficCore,
 )
-from marlmerge.spec.reward import EGO_TERMS
+from marlmerge.spec.reward import EGO_TERMS, total_reward
 
 
 class BatchedMergeEnv(EnvBase):
@@ -168,7 +168,7 @@ class BatchedMergeEnv(EnvBase):
         out = TensorDict(
             {
                 "observation": torch.as_tensor(ego_obs, device=dev),
-                "reward": col(terms.sum(axis=1)),
+                "reward": col(total_reward(terms)),
                 "reward_terms": TensorDict(
                     {t: col(terms[:, i]) for i, t in enumerate(EGO_TERMS)}, batch_size=[b]
                 ),

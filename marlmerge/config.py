@@ -33,7 +33,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 MPH_TO_MPS = 0.44704
-OBSERVATION_LAYOUTS = ("paper", "extended")
+OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel")
 """Values of `ego.observation` (the tables: `marlmerge.spec.observation.EGO_LAYOUTS`)."""
 MAX_LATENCY_S = 2.0
 """`sensing.latency_s` is at most this (the core keeps that many steps of observations)."""
@@ -183,9 +183,10 @@ class EgoConfig:
     stall_time_s: float = 10.0
     """Truncation: slower than `stall_speed_mps` for this long."""
     observation: str = "paper"
-    """The ego's observation layout: "paper" (the paper's 7 features) or "extended" (those, then
+    """The ego's observation layout: "paper" (the paper's 7 features), "extended" (those, then
     the vehicle alongside, the nearest left-lane vehicles and the times to the join and merge
-    points; `marlmerge.spec.observation`)."""
+    points) or "extended_accel" (those, then the ego's own acceleration;
+    `marlmerge.spec.observation`)."""
     time_to_merge_cap_s: float = 10.0
     """The extended layout's times to the join and merge points are at most this."""
     safety_filter: bool = False
@@ -239,6 +240,8 @@ class RewardConfig:
     `collision`:    -collision_penalty once, on the step the ego collides (not in the paper).
     `back_headway`: -w_back_headway * g(d_back, back_headway_s * v_back)       (off by default)
     `back_ttc`:     -w_back_ttc * g(d_back, back_ttc_s * max(v_back - v, 0))   (off by default)
+    `jerk`:         -w_jerk * (a - a_prev)^2, the change of the applied acceleration since the
+                    previous simulator step in m/s^2, squared                  (off by default)
     Distance terms count only inside the merge area (from `distance_active_from_m` on); the two
     follower terms only for a gap-back vehicle within the sensing range.
     """
@@ -273,6 +276,12 @@ class RewardConfig:
     """`back_ttc` (off by default): -w_back_ttc * g(d_back, back_ttc_s * (v_back - v)), a penalty
     while the gap-back vehicle's time-to-collision with the ego is below `back_ttc_s`."""
     back_ttc_s: float = 3.0
+    w_jerk: float = 0.0
+    """`jerk` (off by default): -w_jerk * (a - a_prev)^2 per simulator step, a and a_prev the
+    applied accelerations (m/s^2) of this and the previous simulator step of the ego's episode
+    (0 on its first step). At `sim.dt_s` = 0.1 s a change of 2 m/s^2 between two actions (a jerk
+    of 20 m/s^3) costs 4 * w_jerk. Pair it with `ego.observation = "extended_accel"`, which shows
+    the ego its own acceleration."""
 
 
 @dataclass(frozen=True)
@@ -341,13 +350,15 @@ class SampleConfig:
     these ranges at each of its resets, from its own seeded generator, and a fresh road every
     `resample_every_egos` ramp vehicles (so a training batch meets many conditions). A range
     `[low, high]` is drawn uniformly; a key left out keeps the scenario's value. Road geometry,
-    the ego's sensing and controls, the reward and the simulation settings are not sampled.
+    the ego's controls, the reward and the simulation settings are not sampled; of the ego's
+    sensing, only its range is.
 
     The draws (`marlmerge.sim.streams.draw_world_scenario`): the speed limit, then the mean entry
     speed as a fraction of it (its spread kept); the adversarial share of the drivers, the
     cooperative share of the rest (the remainder neutral), or, for a `pure_mix_fraction` of the
     draws, drivers of one profile only; the adversarial drivers' headway and
-    speed factor; the centre c of the ramp vehicle's start speeds, drawn in (c - 3, c + 3) m/s.
+    speed factor; the centre c of the ramp vehicle's start speeds, drawn in (c - 3, c + 3) m/s;
+    the sensing range.
     """
 
     flow_vph_per_lane: Range | None = None
@@ -361,6 +372,8 @@ class SampleConfig:
     adversarial_speed_factor: Range | None = None
     ego_start_speed_mps: Range | None = None
     """Centre of the world's ramp-vehicle start speeds (each start drawn within +-3 m/s of it)."""
+    sensing_range_m: Range | None = None
+    """The ramp vehicle's sensing range (`ego.sensing_range_m`), drawn last."""
     pure_mix_fraction: float = 0.0
     """Share of draws whose drivers are all of one profile (neutral, cooperative or adversarial,
     equally likely), as in the grid's pure cells; the other draws use the shares above."""
@@ -616,6 +629,7 @@ SCENARIO_RULES = {
             "reward.w_highway_speed",
             "reward.w_back_headway",
             "reward.w_back_ttc",
+            "reward.w_jerk",
             "interaction.w_ego_collision",
             "interaction.w_ego_hard_brake_per_s",
             "interaction.w_ego_stall",
@@ -640,6 +654,7 @@ SCENARIO_RULES = {
     ),
     "sample.flow_vph_per_lane": ">=0",
     "sample.ego_start_speed_mps": ">=0",
+    "sample.sensing_range_m": ">0",
     "sample.adversarial_share": "[0,1]",
     "sample.cooperative_share": "[0,1]",
     "sample.pure_mix_fraction": "[0,1]",

@@ -88,8 +88,9 @@ from marlmerge.training.presets import load_preset, open_checkpoint
 
 PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
 PHASES = ("pretrain", "adversary", "ego")
-CHECKPOINT_VERSION = 2
-"""Layout of `checkpoint.pt` (2: each group's learner, replay and generators under its name)."""
+CHECKPOINT_VERSION = 3
+"""Layout of `checkpoint.pt` (2: each group's learner, replay and generators under its name; 3:
+eight reward terms, `jerk` added)."""
 
 COTRAIN_RULES = {
     **RUN_RULES,

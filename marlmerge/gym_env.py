@@ -42,7 +42,7 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.pettingzoo_env import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED, TrafficCore
 from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
-from marlmerge.spec.reward import EGO_TERMS
+from marlmerge.spec.reward import EGO_TERMS, total_reward
 
 ENV_ID = "marlmerge/RampMerge-v1"
 HighwayPolicy = Callable[[np.ndarray], np.ndarray]
@@ -180,7 +180,7 @@ class RampMergeEnv(gymnasium.Env):
         infos = _infos(terms, outcome, t, self._worlds.interventions())
         info = {k: v[0] for k, v in infos.items()}
         self._render_human()
-        return obs[0], float(terms[0].sum()), terminated, truncated, info
+        return obs[0], float(total_reward(terms[0])), terminated, truncated, info
 
     @property
     def core(self) -> TrafficCore:
@@ -285,7 +285,7 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
         truncated = outcome == OUTCOME_TRUNCATED
         self._done = terminated | truncated
         infos = _infos(terms, outcome, t, self._worlds.interventions())
-        return obs, terms.sum(axis=1), terminated, truncated, infos
+        return obs, total_reward(terms), terminated, truncated, infos
 
     @property
     def core(self) -> TrafficCore:

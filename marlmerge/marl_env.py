@@ -47,7 +47,7 @@ from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import ScenarioConfig
 from marlmerge.sim import Roster
 from marlmerge.spec.observation import HIGHWAY_FEATURES
-from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 
 GROUP = "highway"
 
@@ -240,7 +240,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
             "exited": torch.as_tensor(exited & left_road, device=dev),
         }
         if with_reward:
-            group["reward"] = col(terms.sum(axis=-1))
+            group["reward"] = col(total_reward(terms))
         return TensorDict(
             {
                 GROUP: TensorDict(group, batch_size=[b, k], device=dev),

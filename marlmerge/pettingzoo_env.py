@@ -65,7 +65,7 @@ from marlmerge.config import ScenarioConfig, load_scenario
 from marlmerge.presets import preset_dir
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
-from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 
 EGO_AGENT = "ramp_0"
 ENV_NAME = "marlmerge_ramp_v1"
@@ -269,7 +269,7 @@ class RampMergeParallelEnv(ParallelEnv):
 
         agents = list(self.agents)
         obs = self._observations(agents, out.ego_obs, out.hw_obs)
-        rewards = {EGO_AGENT: float(sum(ego_terms.values()))}
+        rewards = {EGO_AGENT: float(total_reward(out.ego_terms[0]))}
         rewards.update({a: float(sum(t.values())) for a, t in hw_terms.items()})
         ego_done = outcome != OUTCOME_NONE
         terminations = {a: False for a in agents}

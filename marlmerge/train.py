@@ -72,8 +72,9 @@ from marlmerge.training.presets import (
     resume_config,
 )
 
-CHECKPOINT_VERSION = 2
-"""Layout of `checkpoint.pt` (2: the learner, replay and generators under `group`)."""
+CHECKPOINT_VERSION = 3
+"""Layout of `checkpoint.pt` (2: the learner, replay and generators under `group`; 3: eight
+reward terms, `jerk` added)."""
 
 
 def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:

@@ -14,6 +14,7 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.marl_env import MultiAgentMergeEnv
 from marlmerge.pettingzoo_env import EGO_AGENT
 from marlmerge.spec.observation import (
+    EGO_EXTENDED_ACCEL_FEATURES,
     EGO_EXTENDED_FEATURES,
     EGO_FEATURES,
     EGO_LAYOUTS,
@@ -33,8 +34,11 @@ def _raw(obs: np.ndarray) -> dict[str, float]:
 
 
 def test_every_layout_begins_with_the_papers_state():
-    assert tuple(EGO_LAYOUTS) == ("paper", "extended")
+    assert tuple(EGO_LAYOUTS) == ("paper", "extended", "extended_accel")
     assert EGO_EXTENDED_FEATURES[: len(EGO_FEATURES)] == EGO_FEATURES
+    assert EGO_EXTENDED_ACCEL_FEATURES[:16] == EGO_EXTENDED_FEATURES
+    assert EGO_EXTENDED_ACCEL_FEATURES[16].name == "ego_accel"
+    assert ego_obs_size(CFG.replace(**{"ego.observation": "extended_accel"})) == 17
     assert len({f.name for f in EGO_EXTENDED_FEATURES}) == len(EGO_EXTENDED_FEATURES) == 16
     assert ego_features(CFG) == EGO_FEATURES and ego_obs_size(CFG) == 7
     assert ego_obs_size(CFG.replace(**EXTENDED)) == 16
@@ -109,7 +113,8 @@ def test_the_paper_layout_is_the_first_seven_extended_features():
 
 
 FULL = {
-    **EXTENDED,
+    "ego.observation": "extended_accel",
+    "reward.w_jerk": 0.1,
     "ego.safety_filter": True,
     "sensing.position_noise_std_m": 0.5,
     "sensing.latency_s": 0.2,
@@ -120,41 +125,41 @@ FULL = {
 
 def test_torchrl_views_are_sized_from_the_layout():
     env = BatchedMergeEnv(num_worlds=3, seed=0, overrides=FULL)
-    assert env.observation_spec["observation"].shape == (3, 16)
+    assert env.observation_spec["observation"].shape == (3, 17)
     check_env_specs(env, seed=0)
     td = env.rollout(5, break_when_any_done=False)
-    assert td["next", "observation"].shape == (3, 5, 16)
+    assert td["next", "observation"].shape == (3, 5, 17)
     assert td["next", "filter_interventions"].dtype.is_floating_point is False
     assert "filter_interventions" not in BatchedMergeEnv(num_worlds=2).observation_spec.keys()
     marl = MultiAgentMergeEnv(num_worlds=2, seed=1, overrides=FULL)
     check_env_specs(marl, seed=1)
-    assert marl.observation_spec["observation"].shape == (2, 16)
+    assert marl.observation_spec["observation"].shape == (2, 17)
 
 
 def test_pettingzoo_view_is_sized_from_the_layout():
     env = marlmerge.parallel_env(overrides=FULL)
-    assert env.observation_space(EGO_AGENT).shape == (16,)
+    assert env.observation_space(EGO_AGENT).shape == (17,)
     parallel_api_test(env, num_cycles=60)
     obs, infos = env.reset(seed=0)
-    assert obs[EGO_AGENT].shape == (16,) and infos[EGO_AGENT]["filter_interventions"] == 0
+    assert obs[EGO_AGENT].shape == (17,) and infos[EGO_AGENT]["filter_interventions"] == 0
     assert "filter_interventions" not in marlmerge.parallel_env().reset(seed=0)[1][EGO_AGENT]
 
 
 def test_gymnasium_views_are_sized_from_the_layout():
     env = gymnasium.make("marlmerge/RampMerge-v1", overrides=FULL)
     obs, info = env.reset(seed=0)
-    assert env.observation_space.shape == (16,) and obs.shape == (16,)
+    assert env.observation_space.shape == (17,) and obs.shape == (17,)
     assert env.observation_space.contains(obs) and "filter_interventions" in info
     obs, *_, info = env.step(np.array([0.5], dtype=np.float32))
-    assert obs.shape == (16,)
+    assert obs.shape == (17,)
     vec = gymnasium.make_vec(
         "marlmerge/RampMerge-v1", num_envs=3, vectorization_mode="vector_entry_point",
         overrides=FULL,
     )  # fmt: skip
     obs, _ = vec.reset(seed=0)
-    assert vec.single_observation_space.shape == (16,) and obs.shape == (3, 16)
+    assert vec.single_observation_space.shape == (17,) and obs.shape == (3, 17)
     obs, *_ = vec.step(np.zeros((3, 1), dtype=np.float32))
-    assert obs.shape == (3, 16)
+    assert obs.shape == (3, 17)
 
 
 def test_rule_policies_read_the_papers_features_of_any_layout():
@@ -172,5 +177,14 @@ def test_the_documented_table_is_the_spec_table():
     page = (Path(__file__).resolve().parent.parent / "docs" / "sensing.md").read_text()
     rows = [line.split("|")[1:5] for line in page.splitlines() if line.startswith("| `")]
     table = {c[0].strip().strip("`"): tuple(x.strip() for x in c[1:]) for c in rows}
-    for f in EGO_EXTENDED_FEATURES:
+    for f in EGO_EXTENDED_ACCEL_FEATURES:
         assert table.get(f.name) == (f.unit, f"{f.scale:g}", f.noise or "-"), f.name
+
+
+def test_the_ego_sees_the_acceleration_it_applied():
+    core = scene(ego=(-120.0, 20.0), overrides={"ego.observation": "extended_accel"})
+    assert core.observe()[0][0, 16] == 0.0  # before its first step
+    for cmd in (1.5, -2.0, 0.0):
+        out = core.rollout(np.array([cmd]))
+        assert out.ego_obs[0, 16] == np.float32(cmd / 5.0)
+        assert np.array_equal(out.ego_obs[:, :16], core.observe()[0][:, :16])

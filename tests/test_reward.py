@@ -111,7 +111,7 @@ FOLLOWER = CFG.replace(**{"reward.w_back_headway": 2.0, "reward.w_back_ttc": 3.0
 def test_follower_terms_are_off_by_default():
     t = ego_step_terms(CFG, 0.0, -20.0, 15.0, 50.0, 3.0, 28.0)  # a fast follower 3 m behind
     assert t["back_headway"] == t["back_ttc"] == 0.0
-    assert tuple(t)[-2:] == ("back_headway", "back_ttc")
+    assert tuple(t)[-3:] == ("back_headway", "back_ttc", "jerk")
 
 
 def test_follower_terms_follow_their_formulas():
@@ -150,3 +150,32 @@ def test_follower_terms_in_a_hand_built_scene():
     back_hw, back_ttc = 5, 6
     assert unsafe.ego_terms[0, back_hw] < 0.0 and unsafe.ego_terms[0, back_ttc] < 0.0
     assert safe.ego_terms[0, back_hw] == 0.0 and safe.ego_terms[0, back_ttc] == 0.0
+
+
+def test_jerk_term_follows_its_formula_and_is_off_by_default():
+    assert ego_step_terms(CFG, 1.0, -50.0, 20.0, 80.0, 80.0, 20.0, False, 3.0)["jerk"] == 0.0
+    cfg = CFG.replace(**{"reward.w_jerk": 0.25})
+    got = ego_step_terms(cfg, 1.0, -50.0, 20.0, 80.0, 80.0, 20.0, False, -3.0)
+    assert got["jerk"] == -0.25 * 9.0
+
+
+def test_jerk_term_charges_each_change_of_the_applied_acceleration_once():
+    import numpy as np
+    from scenes import scene
+
+    core = scene((-140.0, 20.0), overrides={"reward.w_jerk": 0.5})
+    jerk = [float(core.rollout(np.array([a])).ego_terms[0, 7]) for a in (1.0, 1.0, -1.0, 0.5)]
+    # the first step of the episode has nothing to change from; a held command costs nothing
+    assert jerk == [0.0, 0.0, -0.5 * 2.0**2, -0.5 * 1.5**2]
+
+
+def test_the_total_reward_is_bit_for_bit_the_sum_of_the_papers_terms():
+    import numpy as np
+
+    from marlmerge.spec.reward import total_reward
+
+    rng = np.random.default_rng(0)
+    terms = -rng.exponential(size=(1000, 7)) * rng.integers(0, 2, size=(1000, 7))
+    with_zero_terms = np.concatenate([terms, np.zeros((1000, 1))], axis=1)
+    assert np.array_equal(total_reward(with_zero_terms), terms.sum(axis=1))
+    assert total_reward(with_zero_terms).tobytes() == terms.sum(axis=1).tobytes()

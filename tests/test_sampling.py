@@ -119,6 +119,8 @@ def test_bad_ranges_name_the_key():
         _cfg(**{"sample.adversarial_share": [0.0, 1.5]})
     with pytest.raises(ValueError, match="sample.resample_every_egos"):
         _cfg(**{"sample.resample_every_egos": 0})
+    with pytest.raises(ValueError, match="sample.sensing_range_m"):
+        _cfg(**{"sample.sensing_range_m": [0.0, 100.0]})
     assert resolve_config("robust_mix").sample.active
 
 
@@ -135,3 +137,21 @@ def test_a_share_of_draws_has_drivers_of_one_profile():
     for b in range(4):
         a, p = plain.world_scenario(b), with_pure.world_scenario(b)
         assert a.traffic == p.traffic and a.road == p.road
+
+
+def test_worlds_draw_their_sensing_range_and_see_that_far():
+    cfg = _cfg(**{"sample.sensing_range_m": [70.0, 150.0], "ego.observation": "extended"})
+    core = TrafficCore(cfg, batch_size=6, seed=3)
+    ranges = np.array([core.world_scenario(b).ego.sensing_range_m for b in range(6)])
+    assert len(set(ranges)) == 6 and ranges.min() >= 70.0 and ranges.max() <= 150.0
+    # the other draws are those of the same seed without a sensing range: it is drawn last
+    plain = TrafficCore(_cfg(), batch_size=6, seed=3)
+    for b in range(6):
+        drawn, other = core.world_scenario(b), plain.world_scenario(b)
+        assert drawn.traffic == other.traffic and drawn.driver == other.driver
+        assert drawn.road == other.road and drawn.ego.start_speed_mps == other.ego.start_speed_mps
+    # a missing left-lane vehicle ahead is reported at the world's own range
+    left_front_dx = core.observe()[0][:, 10] * 100.0
+    seen = left_front_dx < ranges - 1e-3
+    assert np.allclose(left_front_dx[~seen], ranges[~seen], atol=1e-3)
+    assert np.all(left_front_dx[seen] <= ranges[seen])

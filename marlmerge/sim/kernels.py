@@ -309,6 +309,7 @@ def rollout_world(
             live = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
             if started and not live:
                 break
+            a_prev, first = wf[b, WF_EGO_CMD], wf[b, WF_EGO_T] <= 0.0  # the ego's last step
             ego_hit = substep(S, b, p, ego_cmd[b], roster, roster_cmd)
             if p[P_SENSE_ON] > 0.0 and vi[b, VI_ACTIVE, EGO] == 1:
                 sense_measure(S, X, b, p)
@@ -318,6 +319,7 @@ def rollout_world(
                 add_ego_terms(
                     p, ego_terms, b, wf[b, WF_EGO_CMD], vf[b, VF_X, EGO], vf[b, VF_V, EGO],
                     wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB], ego_hit,
+                    0.0 if first else wf[b, WF_EGO_CMD] - a_prev,
                 )  # fmt: skip
             _roster_step(S, b, p, roster, hw_terms, live)
             if wi[b, WI_STEP_OUTCOME] != OUTCOME_NONE:
@@ -509,6 +511,7 @@ def next_ego_world(S: tuple, X: tuple, b: int, p: np.ndarray) -> None:
     wi[b, WI_NEXT_ID] += 1
     wi[b, WI_N_ACTIVE] += 1
     wf[b, WF_EGO_T], wf[b, WF_EGO_STALL], wf[b, WF_EGO_IN_LANE] = 0.0, 0.0, 0.0
+    wf[b, WF_EGO_CMD] = 0.0
     wi[b, WI_OUTCOME] = OUTCOME_NONE
     wi[b, WI_EGO_COUNT] += 1
     wi[b, WI_FILTER_COUNT] = 0

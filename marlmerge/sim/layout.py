@@ -250,6 +250,9 @@ _PARAMS = (
     "back_headway_s",
     "w_back_ttc",
     "back_ttc_s",
+    "obs_accel",
+    "accel_scale_mps2",
+    "w_jerk",
 )
 (
     P_DT,
@@ -327,12 +330,19 @@ _PARAMS = (
     P_BACK_HW,
     P_W_BACK_TTC,
     P_BACK_TTC,
+    P_OBS_ACCEL,
+    P_ACCEL_SCALE,
+    P_W_JERK,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
 
 def pack_params(
-    cfg: ScenarioConfig, speed_scale_mps: float, position_scale_m: float, time_scale_s: float
+    cfg: ScenarioConfig,
+    speed_scale_mps: float,
+    position_scale_m: float,
+    time_scale_s: float,
+    accel_scale_mps2: float,
 ) -> np.ndarray:
     """The config's numbers in the order of `P`, as the kernels read them (the scales of the
     observation tables, `marlmerge.spec.observation`, given by the caller)."""
@@ -395,6 +405,7 @@ def pack_params(
         "speed_scale_mps": speed_scale_mps,
         "position_scale_m": position_scale_m,
         "time_scale_s": time_scale_s,
+        "accel_scale_mps2": accel_scale_mps2,
         **_option_params(cfg),
     }
     if set(values) != set(_PARAMS):  # pragma: no cover - a developer error, caught by any test
@@ -403,11 +414,11 @@ def pack_params(
 
 
 def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
-    """The opt-in options: the extended observation, sensing, the safety filter, the follower's
-    reward terms (flags as 0/1)."""
+    """The opt-in options: the extended observations, sensing, the safety filter, the follower's
+    and the jerk reward terms (flags as 0/1)."""
     e, sensing, w = cfg.ego, cfg.sensing, cfg.reward
     return {
-        "obs_extended": float(e.observation == "extended"),
+        "obs_extended": float(e.observation in ("extended", "extended_accel")),
         "time_cap_s": e.time_to_merge_cap_s,
         "lane_width_m": cfg.road.lane_width_m,
         "ramp_offset_m": cfg.road.ramp_offset_m,
@@ -426,4 +437,6 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "back_headway_s": w.back_headway_s,
         "w_back_ttc": w.w_back_ttc,
         "back_ttc_s": w.back_ttc_s,
+        "obs_accel": float(e.observation == "extended_accel"),
+        "w_jerk": w.w_jerk,
     }

@@ -33,10 +33,12 @@ from marlmerge.sim.layout import (
     NZ_FRONT_X,
     NZ_LEFT_BACK_X,
     NZ_LEFT_FRONT_X,
+    P_ACCEL_SCALE,
     P_LANE_WIDTH,
     P_LEN,
     P_MERGE_ZONE,
     P_NOISE_ON,
+    P_OBS_ACCEL,
     P_OBS_EXTENDED,
     P_OCCLUSION,
     P_POS_NOISE,
@@ -54,6 +56,7 @@ from marlmerge.sim.layout import (
     RIGHT,
     VF_V,
     VF_X,
+    WF_EGO_CMD,
     WF_VB,
     WF_VF,
     WF_XB,
@@ -95,6 +98,8 @@ def ego_observation(
         _side(p, dst, row, x_e, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
         _left(S, b, p, dst, row, noise, zi)
         _times(p, dst, row, x_e, v_e)
+    if p[P_OBS_ACCEL] > 0.0:
+        dst[row, 16] = wf[b, WF_EGO_CMD] / p[P_ACCEL_SCALE]
 
 
 @kernel(inline=True)

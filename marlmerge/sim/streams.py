@@ -231,6 +231,7 @@ def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> Scenari
         pure = ("mix_neutral", "mix_cooperative", "mix_adversarial")[int(g.integers(3))]
         for key in ("mix_neutral", "mix_cooperative", "mix_adversarial"):
             changes[f"driver.{key}"] = 1.0 if key == pure else 0.0
+    changes["ego.sensing_range_m"] = draw(smp.sensing_range_m)
     return base.replace(**{k: v for k, v in changes.items() if v is not None})
 
 

@@ -9,10 +9,11 @@ vehicle at the edge of the sensing range (`x_ego +- sensing_range_m`) driving at
 A missing leader or follower of a mainline vehicle is encoded as a gap equal to the sensing range
 and a speed equal to the vehicle's own speed.
 
-The ego has two layouts, chosen by `ego.observation` (`ego_features(cfg)`): `"paper"`
-(`EGO_FEATURES`, the paper's state) and `"extended"` (`EGO_EXTENDED_FEATURES`: the paper's state
+The ego has three layouts, chosen by `ego.observation` (`ego_features(cfg)`): `"paper"`
+(`EGO_FEATURES`, the paper's state), `"extended"` (`EGO_EXTENDED_FEATURES`: the paper's state
 followed by the right-lane vehicle alongside the ego, the nearest left-lane vehicles and the time
-to the join and merge points). Every layout begins with the paper's seven features, so a reader of
+to the join and merge points) and `"extended_accel"` (the extended layout, then the ego's own
+acceleration). Every layout begins with the paper's seven features, so a reader of
 those (`marlmerge.baselines`, `marlmerge.policies`) works with either. In the extended layout a
 missing vehicle (none alongside, none in the left lane within the sensing range, or hidden by
 occlusion) is the same virtual vehicle: dx = +sensing range (ahead, alongside) or -sensing range
@@ -35,6 +36,7 @@ from marlmerge.config import OBSERVATION_LAYOUTS, ScenarioConfig
 SPEED_SCALE_MPS = 30.0
 POSITION_SCALE_M = 100.0
 TIME_SCALE_S = 10.0
+ACCEL_SCALE_MPS2 = 5.0
 
 
 @dataclass(frozen=True)
@@ -132,9 +134,19 @@ EGO_EXTRA_FEATURES: tuple[Feature, ...] = (
 """What the extended layout adds after the paper's state."""
 EGO_EXTENDED_FEATURES: tuple[Feature, ...] = EGO_FEATURES + EGO_EXTRA_FEATURES
 """`ego.observation = "extended"`: the paper's state, then `EGO_EXTRA_FEATURES`."""
+EGO_ACCEL_FEATURE = Feature(
+    "ego_accel",
+    "m/s^2",
+    ACCEL_SCALE_MPS2,
+    "acceleration the ramp vehicle applied in the last simulator step (0 before its first)",
+)
+EGO_EXTENDED_ACCEL_FEATURES: tuple[Feature, ...] = EGO_EXTENDED_FEATURES + (EGO_ACCEL_FEATURE,)
+"""`ego.observation = "extended_accel"`: the extended layout, then the ego's own acceleration
+(what a policy needs to see to keep the `jerk` reward term low)."""
 EGO_LAYOUTS: dict[str, tuple[Feature, ...]] = {
     "paper": EGO_FEATURES,
     "extended": EGO_EXTENDED_FEATURES,
+    "extended_accel": EGO_EXTENDED_ACCEL_FEATURES,
 }
 """The ego's layouts by the name `ego.observation` takes."""
 assert tuple(EGO_LAYOUTS) == OBSERVATION_LAYOUTS

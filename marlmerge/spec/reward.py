@@ -43,6 +43,7 @@ from marlmerge.sim.layout import (
     P_W_BACK_TTC,
     P_W_FRONT,
     P_W_HW_SPEED,
+    P_W_JERK,
     P_W_SPEED,
     pack_params,
 )
@@ -55,10 +56,11 @@ EGO_TERMS = (
     "collision",
     "back_headway",
     "back_ttc",
+    "jerk",
 )
 """Names of the ego's reward terms, in reporting order (columns of the kernel's ego sums). The
-last two value the follower and are 0 unless weighted (`RewardConfig.w_back_headway`,
-`w_back_ttc`)."""
+last three, the follower's terms and the jerk term, are 0 unless weighted
+(`RewardConfig.w_back_headway`, `w_back_ttc`, `w_jerk`)."""
 HIGHWAY_TERMS = ("acceleration", "gap_front", "speed", "collision")
 """A mainline driver's own driving terms."""
 INTERACTION_TERMS = ("ego_collision", "ego_hard_brake", "ego_stall", "ego_unsafe_gap")
@@ -127,9 +129,10 @@ def add_ego_terms(
     d_back_m: float,
     v_back_mps: float,
     collided: bool,
+    accel_change_mps2: float,
 ) -> None:  # noqa: ANN001
-    """Add one simulator step of the ego's `EGO_TERMS` to out[b] ([B, 7]); accel is the applied
-    one."""
+    """Add one simulator step of the ego's `EGO_TERMS` to out[b] ([B, 8]); accel is the applied
+    one, accel_change its change since the previous step of the episode (0 on the first)."""
     close_f, close_b = ego_closeness(params, x_m, v_mps, d_front_m, d_back_m, v_back_mps)
     out[b, 0] += -params[P_W_ACCEL] * abs(accel_mps2)
     out[b, 1] += -params[P_W_FRONT] * close_f
@@ -141,6 +144,16 @@ def add_ego_terms(
     close_hw, close_ttc = follower_closeness(params, x_m, v_mps, d_back_m, v_back_mps)
     out[b, 5] += -params[P_W_BACK_HW] * close_hw
     out[b, 6] += -params[P_W_BACK_TTC] * close_ttc
+    out[b, 7] += -params[P_W_JERK] * accel_change_mps2 * accel_change_mps2
+
+
+def total_reward(terms: np.ndarray) -> np.ndarray:
+    """The reward: the named terms [..., T] summed left to right in `EGO_TERMS` order, so that a
+    term left at 0 changes no bit of the total (a plain `sum` may pair the terms differently)."""
+    total = 0.0 + terms[..., 0]  # from +0.0, as numpy's sum of a few terms starts
+    for i in range(1, terms.shape[-1]):
+        total = total + terms[..., i]
+    return total
 
 
 @kernel
@@ -205,9 +218,14 @@ def add_highway_terms(
 
 
 def _params(cfg: ScenarioConfig) -> np.ndarray:
-    from marlmerge.spec.observation import POSITION_SCALE_M, SPEED_SCALE_MPS, TIME_SCALE_S
+    from marlmerge.spec.observation import (
+        ACCEL_SCALE_MPS2,
+        POSITION_SCALE_M,
+        SPEED_SCALE_MPS,
+        TIME_SCALE_S,
+    )
 
-    return pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S)
+    return pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S, ACCEL_SCALE_MPS2)
 
 
 def ego_step_terms(
@@ -219,12 +237,14 @@ def ego_step_terms(
     d_back_m: float,
     v_back_mps: float,
     collided: bool = False,
+    accel_change_mps2: float = 0.0,
 ) -> dict[str, float]:
     """The ego's `EGO_TERMS` for one simulator step, by the kernel's own function."""
     out = np.zeros((1, len(EGO_TERMS)))
     add_ego_terms(
-        _params(cfg), out, 0, accel_mps2, x_m, v_mps, d_front_m, d_back_m, v_back_mps, collided
-    )
+        _params(cfg), out, 0, accel_mps2, x_m, v_mps, d_front_m, d_back_m, v_back_mps, collided,
+        accel_change_mps2,
+    )  # fmt: skip
     return dict(zip(EGO_TERMS, out[0].tolist(), strict=True))
 
 

@@ -17,7 +17,7 @@ from tensordict import TensorDictBase
 
 from marlmerge import files
 from marlmerge.sim import OUTCOME_NAMES
-from marlmerge.spec.reward import EGO_TERMS
+from marlmerge.spec.reward import EGO_TERMS, total_reward
 
 LOSS_FIELDS = ("update", "sim_step", "loss")
 EGO_FIELDS = ("ego", "sim_step", "world", "outcome", "time_s", "total_reward", *EGO_TERMS)
@@ -99,7 +99,7 @@ class EgoTracker:
                     "world": int(w),
                     "outcome": OUTCOME_NAMES[int(outcome[w, t])],
                     "time_s": round(float(self.steps[w] * self.step_time_s), 3),
-                    "total_reward": float(self.sums[w].sum()),
+                    "total_reward": float(total_reward(self.sums[w])),
                     **{name: float(self.sums[w, i]) for i, name in enumerate(EGO_TERMS)},
                 }
                 log.write([row[f] for f in EGO_FIELDS])
