@@ -438,7 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         metavar="SPEC",
         help="hold, idm, gap, or [label=]quadq|dqn|td3:RUN_GLOB; @filter / @nofilter after the "
-        "kind turns the safety filter on / off (gap@filter) (repeatable; default: the three rules)",
+        "kind turns the safety filter on / off (gap@filter), @shield puts the policy behind gap "
+        "acceptance's judgement (quadq@shield:runs/x_s*) (repeatable; default: the three rules)",
     )
     g.add_argument(
         "--condition",

@@ -8,7 +8,9 @@ Specs:
 - a run folder or a `policy.pt` of any algorithm (`policy_from_spec`);
 - any of these with `@filter` or `@nofilter` after the kind (`gap@filter`,
   `quadq@nofilter:runs/robust_s*`): with or without the core's safety filter
-  (`ego.safety_filter`), whatever the policy was trained with.
+  (`ego.safety_filter`), whatever the policy was trained with; or with `@shield`
+  (`quadq@shield:runs/robust_s*`): its commands judged by gap acceptance
+  (`marlmerge.baselines.GapShield`).
 
 A learned policy drives with the ego-side settings it was trained with (`EGO_SIDE_KEYS`: its
 observation layout and its safety filter), whatever the traffic condition it meets: the
@@ -32,6 +34,7 @@ from marlmerge.evaluate import EgoPolicy
 RULE_POLICIES = ("hold", "idm", "gap")
 LEARNED_KINDS = ("quadq", "dqn", "td3")
 FILTER_MODIFIERS = {"filter": True, "nofilter": False}
+SHIELD_MODIFIER = "shield"
 EGO_SIDE_KEYS = (
     "ego.observation",
     "ego.time_to_merge_cap_s",
@@ -51,6 +54,9 @@ class PolicySpec:
     runs: tuple[str, ...] = ()
     safety_filter: bool | None = None
     """`@filter` / `@nofilter`: the core's safety filter on / off; None: as trained (rules: off)."""
+    shield: bool = False
+    """`@shield`: the policy's commands pass through gap acceptance's judgement
+    (`marlmerge.baselines.GapShield`)."""
 
 
 def parse_policy(spec: str) -> PolicySpec:
@@ -59,11 +65,14 @@ def parse_policy(spec: str) -> PolicySpec:
     label, _, body = spec.rpartition("=")
     head, _, pattern = body.partition(":")
     kind, _, modifier = head.partition("@")
-    if modifier and modifier not in FILTER_MODIFIERS:
-        raise ValueError(f"policy {spec!r}: unknown modifier @{modifier} (@filter or @nofilter)")
+    if modifier and modifier not in (*FILTER_MODIFIERS, SHIELD_MODIFIER):
+        raise ValueError(
+            f"policy {spec!r}: unknown modifier @{modifier} (@filter, @nofilter or @shield)"
+        )
     flt = FILTER_MODIFIERS.get(modifier)
+    shield = modifier == SHIELD_MODIFIER
     if kind in RULE_POLICIES and not pattern:
-        return PolicySpec(label or head, kind, safety_filter=flt)
+        return PolicySpec(label or head, kind, safety_filter=flt, shield=shield)
     if kind in LEARNED_KINDS and pattern:
         from marlmerge.policy_file import read_policy
 
@@ -76,7 +85,7 @@ def parse_policy(spec: str) -> PolicySpec:
             algorithm = read_policy(run, "ego")["algorithm"]
             if algorithm != kind:
                 raise ValueError(f"policy {spec!r}: {run!r} holds a {algorithm} policy")
-        return PolicySpec(label or head, kind, runs, flt)
+        return PolicySpec(label or head, kind, runs, flt, shield)
     raise ValueError(
         f"unknown policy {spec!r} (use one of {', '.join(RULE_POLICIES)}, or "
         f"[label=]{'|'.join(LEARNED_KINDS)}:RUN_GLOB)"
@@ -85,19 +94,25 @@ def parse_policy(spec: str) -> PolicySpec:
 
 def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
     """The obs [B, F] -> action [B, 1] function of one policy (and one training run)."""
+    from marlmerge.baselines import GapAcceptancePolicy, GapShield
+
     if spec.kind in LEARNED_KINDS:
         from marlmerge.learners.baselines_rl import load_policy
 
-        return load_policy(run)
-    from marlmerge.baselines import GapAcceptancePolicy
-    from marlmerge.policies import IdmEgoPolicy, constant_speed_action
+        policy = load_policy(run)
+    else:
+        from marlmerge.policies import IdmEgoPolicy, constant_speed_action
 
-    rule = {
-        "hold": constant_speed_action,
-        "idm": IdmEgoPolicy(scenario),
-        "gap": GapAcceptancePolicy(scenario),
-    }[spec.kind]
-    return lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)
+        rule = {
+            "hold": constant_speed_action,
+            "idm": IdmEgoPolicy(scenario),
+            "gap": GapAcceptancePolicy(scenario),
+        }[spec.kind]
+        policy = lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)  # noqa: E731
+    if not spec.shield:
+        return policy
+    shield = GapShield(scenario)
+    return lambda obs: torch.as_tensor(shield(obs.numpy(), policy(obs).numpy()))
 
 
 def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -> ScenarioConfig:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from marlmerge.baselines import GapAcceptancePolicy, IdmEgoPolicy
+from marlmerge.baselines import GapAcceptancePolicy, GapShield, IdmEgoPolicy
 from marlmerge.config import ScenarioConfig
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 from marlmerge.spec.observation import EGO_SCALE
@@ -129,3 +129,48 @@ def test_free_road_speeds_up_to_the_limit_and_follows_by_idm_in_the_lane(cfg):
     assert policy(_obs(cfg, cfg.road.speed_limit_mps, -200.0))[0, 0] == pytest.approx(0.0)
     in_lane = _obs(cfg, 20.0, -10.0, front=(30.0, 18.0), back=(-20.0, 22.0))
     np.testing.assert_allclose(policy(in_lane), IdmEgoPolicy(cfg)(in_lane))
+
+
+def test_the_shield_lets_commands_through_where_nothing_is_at_stake(cfg):
+    shield = GapShield(cfg)
+    commands = np.linspace(-4.5, 2.5, 15, dtype=np.float32)[:, None]
+    for obs in (
+        _obs(cfg, 25.0, -250.0),  # free road
+        _obs(cfg, 25.0, -250.0, front=(80.0, 25.0), back=(-80.0, 25.0)),  # a long gap
+        _obs(cfg, 25.0, -10.0, front=(30.0, 18.0), back=(-20.0, 22.0)),  # in the lane
+    ):
+        batch = np.repeat(obs, len(commands), axis=0)
+        assert np.array_equal(shield(batch, commands), commands)
+
+
+def test_the_shield_stops_a_join_alongside_a_vehicle_and_keeps_a_safe_one(cfg):
+    shield = GapShield(cfg)
+    # 12 m before the join point at 25 m/s, a vehicle 2 m behind, alongside, at 27 m/s
+    alongside = _obs(cfg, 25.0, cfg.x_overlap_m - 12.0, back=(-2.0, 27.0))
+    out = shield(alongside, np.array([[1.0]], dtype=np.float32))
+    assert out[0, 0] != 1.0
+    np.testing.assert_allclose(out, GapAcceptancePolicy(cfg)(alongside))
+    # at the ramp start, alongside a vehicle in a short gap: it drops behind as gap acceptance
+    short = _obs(cfg, 25.0, -250.0, front=(10.0, 25.0), back=(-1.0, 25.0))
+    assert shield(short, np.array([[2.0]], dtype=np.float32))[0, 0] < 0.0
+    # the same place with the vehicle 60 m behind: joining is safe, the command stands
+    clear = _obs(cfg, 25.0, cfg.x_overlap_m - 12.0, back=(-60.0, 25.0))
+    assert shield(clear, np.array([[1.0]], dtype=np.float32))[0, 0] == 1.0
+
+
+def test_a_shielded_policy_never_collides_where_the_bare_one_does(cfg):
+    """A reckless merger (full throttle on the ramp, IDM in the lane) collides in dense
+    traffic; behind the shield the same vehicle does not, over the same roads."""
+    dense = cfg.replace(**{"traffic.flow_vph_per_lane": 1800.0})
+    hi, idm = dense.ego.accel_bounds_mps2[1], IdmEgoPolicy(dense)
+
+    def reckless(obs: np.ndarray) -> np.ndarray:
+        on_ramp = obs[:, 1:2] * EGO_SCALE[1] < dense.x_overlap_m
+        return np.where(on_ramp, hi, idm(obs)).astype(np.float32)
+
+    shield = GapShield(dense)
+    shielded = lambda obs: shield(obs, reckless(obs))  # noqa: E731
+    bare = first_ego_outcomes(reckless, dense, batch_size=128, seed=5)
+    safe = first_ego_outcomes(shielded, dense, batch_size=128, seed=5)
+    assert (bare == OUTCOME_COLLISION).sum() >= 20  # 55 of the 128
+    assert (safe == OUTCOME_COLLISION).sum() == 0 and (safe == OUTCOME_SUCCESS).mean() >= 0.95

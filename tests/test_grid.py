@@ -184,11 +184,13 @@ def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(t
     assert scenario_for(parse_policy("gap"), None, condition) == condition
     with pytest.raises(ValueError, match="@careful"):
         parse_policy("gap@careful")
+    shielded = parse_policy(f"quadq@shield:{run}")
+    assert shielded.shield and shielded.safety_filter is None and shielded.name == "quadq@shield"
     rows = run_grid(
-        [parse_policy(f"quadq:{run}"), gap], ["grid_light_mixed"], episodes=2, worlds=2,
-        out_dir=tmp_path / "grid", progress=False,
+        [parse_policy(f"quadq:{run}"), gap, shielded], ["grid_light_mixed"], episodes=2,
+        worlds=2, out_dir=tmp_path / "grid", progress=False,
     ).rows  # fmt: skip
-    assert {r["policy"] for r in rows} == {"quadq", "gap@filter"}
+    assert {r["policy"] for r in rows} == {"quadq", "gap@filter", "quadq@shield"}
 
 
 def test_a_sensing_condition_keeps_the_roads_and_changes_the_sensor():
