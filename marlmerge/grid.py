@@ -286,11 +286,17 @@ def _csv_text(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
-def _cell(rows: list[dict], policy: str, cond: str, metric: str) -> np.ndarray:
-    return np.array(
-        [r[metric] for r in rows if r["policy"] == policy and r["condition"] == cond],
-        dtype=np.float64,
-    )
+def _by_cell(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
+    """The rows of each (policy, condition), in order: the tables read their cells from here
+    (one pass over the rows, not one per table cell)."""
+    cells: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        cells.setdefault((r["policy"], r["condition"]), []).append(r)
+    return cells
+
+
+def _cell(cells: dict, policy: str, cond: str, metric: str) -> np.ndarray:
+    return np.array([r[metric] for r in cells.get((policy, cond), [])], dtype=np.float64)
 
 
 def _fmt_rate(values: np.ndarray) -> str:
@@ -312,7 +318,9 @@ def _table(rows: list[dict], policies: list[str], conds: list[str], cell) -> lis
     return lines
 
 
-def _overall_table(rows: list[dict], policies: list[str], conds: list[str]) -> list[str]:
+def _overall_table(
+    rows: list[dict], cells: dict, policies: list[str], conds: list[str]
+) -> list[str]:
     """Per policy: success / collision / truncation over all conditions, the worst condition
     (pooled over runs) and the worst (training run, condition), by success rate."""
     lines = [
@@ -323,13 +331,13 @@ def _overall_table(rows: list[dict], policies: list[str], conds: list[str]) -> l
     for p in policies:
         mine = [r for r in rows if r["policy"] == p]
         rate = {k: float(np.mean([float(r[k]) for r in mine])) for k in _OUTCOMES}
-        cells: dict[tuple[str, str], list[float]] = {}
+        by_run: dict[tuple[str, str], list[float]] = {}
         for r in mine:
-            cells.setdefault((r["run"], r["condition"]), []).append(float(r["success"]))
-        pooled = {c: float(np.mean(_cell(rows, p, c, "success"))) for c in conds}
+            by_run.setdefault((r["run"], r["condition"]), []).append(float(r["success"]))
+        pooled = {c: float(np.mean(_cell(cells, p, c, "success"))) for c in conds}
         worst_c = min(pooled, key=pooled.get)
         (run, cond), worst = min(
-            ((k, float(np.mean(v))) for k, v in cells.items()), key=lambda kv: kv[1]
+            ((k, float(np.mean(v))) for k, v in by_run.items()), key=lambda kv: kv[1]
         )
         lines.append(
             f"| {p} | {len(mine)} | {100 * rate['success']:.2f} | {100 * rate['collision']:.2f} | "
@@ -353,12 +361,15 @@ def _runs_table(rows: list[dict], policies: list[str], conds: list[str]) -> list
         "| policy | run | success % | collision % | worst condition |",
         "|---|---|---|---|---|",
     ]
+    by_run: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        by_run.setdefault((r["policy"], r["run"]), []).append(r)
     for p in policies:
-        runs = list(dict.fromkeys(r["run"] for r in rows if r["policy"] == p))
+        runs = [run for policy, run in by_run if policy == p]
         if len(runs) < 2:
             continue
         for run in runs:
-            mine = [r for r in rows if r["policy"] == p and r["run"] == run]
+            mine = by_run[(p, run)]
             succ = {c: [float(r["success"]) for r in mine if r["condition"] == c] for c in conds}
             worst = min(conds, key=lambda c: float(np.mean(succ[c])))
             lines.append(
@@ -379,6 +390,7 @@ def summary_markdown(
     seed: int,
 ) -> str:
     n_runs = {p: len({r["run"] for r in rows if r["policy"] == p}) for p in policies}
+    cells = _by_cell(rows)
     out = [
         "# Robustness grid",
         "",
@@ -392,7 +404,7 @@ def summary_markdown(
         "",
         "## Overall: every condition pooled, and the worst cell",
         "",
-        *_overall_table(rows, policies, conds),
+        *_overall_table(rows, cells, policies, conds),
         "",
         *_runs_table(rows, policies, conds),
         "## Success % / collision %",
@@ -402,8 +414,8 @@ def summary_markdown(
             policies,
             conds,
             lambda p, c: (
-                f"{_fmt_rate(_cell(rows, p, c, 'success'))} / "
-                f"{_fmt_rate(_cell(rows, p, c, 'collision'))}"
+                f"{_fmt_rate(_cell(cells, p, c, 'success'))} / "
+                f"{_fmt_rate(_cell(cells, p, c, 'collision'))}"
             ),
         ),
         "",
@@ -414,8 +426,8 @@ def summary_markdown(
             policies,
             conds,
             lambda p, c: (
-                f"{_fmt_mean(_cell(rows, p, c, 'mean_abs_accel_mps2'), 2)} / "
-                f"{_fmt_mean(_cell(rows, p, c, 'max_abs_jerk_mps3'))}"
+                f"{_fmt_mean(_cell(cells, p, c, 'mean_abs_accel_mps2'), 2)} / "
+                f"{_fmt_mean(_cell(cells, p, c, 'max_abs_jerk_mps3'))}"
             ),
         ),
         "",
@@ -427,9 +439,9 @@ def summary_markdown(
             policies,
             conds,
             lambda p, c: (
-                f"{_fmt_mean(_cell(rows, p, c, 'time_ttc_below_s'), 2)} / "
-                f"{_fmt_mean(_cell(rows, p, c, 'min_headway_after_merge_s'), 2)} / "
-                f"{_fmt_mean(_cell(rows, p, c, 'follower_min_accel_mps2'))}"
+                f"{_fmt_mean(_cell(cells, p, c, 'time_ttc_below_s'), 2)} / "
+                f"{_fmt_mean(_cell(cells, p, c, 'min_headway_after_merge_s'), 2)} / "
+                f"{_fmt_mean(_cell(cells, p, c, 'follower_min_accel_mps2'))}"
             ),
         ),
         "",
@@ -439,13 +451,13 @@ def summary_markdown(
             rows,
             policies,
             conds,
-            lambda p, c: _fmt_mean(_cell(rows, p, c, "background_collisions"), 3),
+            lambda p, c: _fmt_mean(_cell(cells, p, c, "background_collisions"), 3),
         ),
         "",
         "## Timeliness: time to merge (s)",
         "",
         *_table(
-            rows, policies, conds, lambda p, c: _fmt_mean(_cell(rows, p, c, "time_to_merge_s"))
+            rows, policies, conds, lambda p, c: _fmt_mean(_cell(cells, p, c, "time_to_merge_s"))
         ),
         "",
         "Every metric of every episode is in `episodes.csv`.",
@@ -460,8 +472,9 @@ def plot_heatmaps(rows: list[dict], policies: list[str], conds: list[str], out: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    cells = _by_cell(rows)
     for metric, cmap in (("success", "RdYlGn"), ("collision", "RdYlGn_r")):
-        grid = np.array([[np.mean(_cell(rows, p, c, metric)) for c in conds] for p in policies])
+        grid = np.array([[np.mean(_cell(cells, p, c, metric)) for c in conds] for p in policies])
         fig, ax = plt.subplots(figsize=(1.1 * len(conds) + 2.5, 0.6 * len(policies) + 2))
         im = ax.imshow(100 * grid, cmap=cmap, vmin=0, vmax=100, aspect="auto")
         ax.set_xticks(range(len(conds)), conds, rotation=40, ha="right")
