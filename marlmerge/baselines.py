@@ -360,8 +360,8 @@ class GapShield:
         return after
 
     def _joins(self, col: dict, a: np.ndarray) -> np.ndarray:
-        """[B, M]: the constant-acceleration plans a [B, M] (towards the speed limit, or a stop)
-        join the current gap with both gaps at least `critical_gap_s`."""
+        """[B, 1]: the command a [B, 1], taken as a constant-acceleration plan (towards the speed
+        limit, or a stop), joins the current gap with both gaps at least `critical_gap_s`."""
         g = self.judge
         v = np.maximum(col["ego_speed"], 0.0)
         dist = np.maximum(self.cfg.x_overlap_m - col["ego_position"], 0.0)

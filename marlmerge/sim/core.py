@@ -34,11 +34,7 @@ from marlmerge.sim.streams import (
     world_seed_sequences,
 )
 from marlmerge.spec.observation import (
-    ACCEL_SCALE_MPS2,
     HIGHWAY_FEATURES,
-    POSITION_SCALE_M,
-    SPEED_SCALE_MPS,
-    TIME_SCALE_S,
     ego_features,
 )
 from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
@@ -115,7 +111,7 @@ class TrafficCore:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.cfg = cfg
         self.batch_size = batch_size
-        row = L.pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S, ACCEL_SCALE_MPS2)
+        row = L.pack_params(cfg)
         self.params = np.tile(row, (batch_size, 1))  # [B, P]: each world's parameters
         self.v_limit = cfg.road.speed_limit_mps
         self.ego_features = ego_features(cfg)
@@ -311,9 +307,7 @@ class TrafficCore:
 
     def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:
         self.streams.cfgs[b] = cfg
-        self.params[b] = L.pack_params(
-            cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S, ACCEL_SCALE_MPS2
-        )
+        self.params[b] = L.pack_params(cfg)
 
     def world_scenario(self, b: int) -> ScenarioConfig:
         """The scenario world `b` runs now: the core's, or the traffic it drew (`[sample]`)."""

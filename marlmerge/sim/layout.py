@@ -28,6 +28,12 @@ from __future__ import annotations
 import numpy as np
 
 from marlmerge.config import ScenarioConfig, latency_steps
+from marlmerge.spec.observation import (
+    ACCEL_SCALE_MPS2,
+    POSITION_SCALE_M,
+    SPEED_SCALE_MPS,
+    TIME_SCALE_S,
+)
 
 # NumPy integers rather than Python ints: Numba compiles a separate copy of a function for every
 # literal int argument, but types a global NumPy integer as a plain int64.
@@ -337,15 +343,9 @@ _PARAMS = (
 N_PARAMS = len(_PARAMS)
 
 
-def pack_params(
-    cfg: ScenarioConfig,
-    speed_scale_mps: float,
-    position_scale_m: float,
-    time_scale_s: float,
-    accel_scale_mps2: float,
-) -> np.ndarray:
-    """The config's numbers in the order of `P`, as the kernels read them (the scales of the
-    observation tables, `marlmerge.spec.observation`, given by the caller)."""
+def pack_params(cfg: ScenarioConfig) -> np.ndarray:
+    """The config's numbers in the order of `P`, as the kernels read them (with the scales of
+    the observation tables, `marlmerge.spec.observation`)."""
     r, d, e, w, i, s = cfg.road, cfg.driver, cfg.ego, cfg.reward, cfg.interaction, cfg.sim
     v_limit = r.speed_limit_mps
     values = {
@@ -402,10 +402,10 @@ def pack_params(
         "i_cut_in_grace_s": i.cut_in_grace_s,
         "hw_lo": s.highway_agent_accel_bounds_mps2[0],
         "hw_hi": s.highway_agent_accel_bounds_mps2[1],
-        "speed_scale_mps": speed_scale_mps,
-        "position_scale_m": position_scale_m,
-        "time_scale_s": time_scale_s,
-        "accel_scale_mps2": accel_scale_mps2,
+        "speed_scale_mps": SPEED_SCALE_MPS,
+        "position_scale_m": POSITION_SCALE_M,
+        "time_scale_s": TIME_SCALE_S,
+        "accel_scale_mps2": ACCEL_SCALE_MPS2,
         **_option_params(cfg),
     }
     if set(values) != set(_PARAMS):  # pragma: no cover - a developer error, caught by any test

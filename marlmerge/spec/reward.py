@@ -217,17 +217,6 @@ def add_highway_terms(
 # ----------------------------------------------------------------------------------------------
 
 
-def _params(cfg: ScenarioConfig) -> np.ndarray:
-    from marlmerge.spec.observation import (
-        ACCEL_SCALE_MPS2,
-        POSITION_SCALE_M,
-        SPEED_SCALE_MPS,
-        TIME_SCALE_S,
-    )
-
-    return pack_params(cfg, SPEED_SCALE_MPS, POSITION_SCALE_M, TIME_SCALE_S, ACCEL_SCALE_MPS2)
-
-
 def ego_step_terms(
     cfg: ScenarioConfig,
     accel_mps2: float,
@@ -242,7 +231,7 @@ def ego_step_terms(
     """The ego's `EGO_TERMS` for one simulator step, by the kernel's own function."""
     out = np.zeros((1, len(EGO_TERMS)))
     add_ego_terms(
-        _params(cfg), out, 0, accel_mps2, x_m, v_mps, d_front_m, d_back_m, v_back_mps, collided,
+        pack_params(cfg), out, 0, accel_mps2, x_m, v_mps, d_front_m, d_back_m, v_back_mps, collided,
         accel_change_mps2,
     )  # fmt: skip
     return dict(zip(EGO_TERMS, out[0].tolist(), strict=True))
@@ -266,7 +255,7 @@ def highway_step_terms(
 ) -> dict[str, float]:
     """A highway agent's `LEARNED_HIGHWAY_TERMS` for one simulator step, by the kernel's own
     function. v_mps defaults to the speed limit; blame follows `ego_to_blame`."""
-    p = _params(cfg)
+    p = pack_params(cfg)
     v = cfg.road.speed_limit_mps if v_mps is None else v_mps
     out = np.zeros((1, 1, len(LEARNED_HIGHWAY_TERMS)))
     blamed = ego_to_blame(p, ego_rear, ego_in_lane_s)
