@@ -35,7 +35,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.pettingzoo_env import resolve_config
+from marlmerge.presets import resolve_config
 from marlmerge.sim import (
     OUTCOME_COLLISION,
     OUTCOME_SUCCESS,

@@ -133,8 +133,10 @@ def _parse_sets(items: list[str]) -> dict:
 def _run_config(cls: type, out: Path, cfg: Any, sets: dict[str, Any], resume: bool) -> Any:
     """The config a run in `out` trains with: `cfg` for a new run, the checkpoint's when
     resuming (a `--set` that differs from it is an error naming the key)."""
+    from marlmerge.presets import run_scenario
     from marlmerge.training.presets import resume_config
 
+    run_scenario(cfg)
     has_run = (out / "checkpoint.pt").exists()
     if has_run and not resume:
         raise ValueError(
@@ -233,15 +235,18 @@ def _print_evaluation(ev: dict) -> None:
 
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
+    from marlmerge.presets import resolve_config
+
+    scen = None
+    if args.scenario:  # checked before torch and the policy are loaded
+        scen = resolve_config(args.scenario)
     from marlmerge.evaluate import evaluate_policy
     from marlmerge.learners.baselines_rl import load_scenario_of
-    from marlmerge.pettingzoo_env import resolve_config
     from marlmerge.registry import RULE_POLICIES, policy_from_spec
 
-    if args.scenario or args.policy in RULE_POLICIES:
-        scen = resolve_config(args.scenario or "default")
-    else:
-        scen = load_scenario_of(args.policy)  # the scenario it was trained on
+    if scen is None:
+        rule = args.policy in RULE_POLICIES
+        scen = resolve_config("default") if rule else load_scenario_of(args.policy)
     policy = policy_from_spec(args.policy, scen)
     highway = None
     if args.highway:
@@ -317,7 +322,7 @@ def sweep_cmd(args: argparse.Namespace) -> int:
 
 def render_cmd(args: argparse.Namespace) -> int:
     """Record greedy episodes of a policy as a video at the simulation rate."""
-    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.presets import resolve_config
     from marlmerge.video import render_episodes
 
     cfg = resolve_config(args.scenario)
@@ -330,7 +335,7 @@ def render_cmd(args: argparse.Namespace) -> int:
 
 def validate_cmd(args: argparse.Namespace) -> int:
     """Run the validation scenarios in marlmerge and SUMO and write the report."""
-    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.presets import resolve_config
     from marlmerge.validation import sumo
     from marlmerge.validation.report import validate
 
@@ -339,7 +344,11 @@ def validate_cmd(args: argparse.Namespace) -> int:
     use_sumo = True if args.sumo else (False if args.reference else None)
     if use_sumo is None and not sumo.available():
         print("SUMO is not installed: comparing against the committed SUMO reference outputs")
-    result = validate(resolve_config(args.scenario), args.out, use_sumo)
+    if args.update_reference and not sumo.available():
+        raise ValueError('--update-reference: SUMO is not installed (pip install -e ".[sumo]")')
+    result = validate(
+        resolve_config(args.scenario), args.out, use_sumo, update_reference=args.update_reference
+    )
     for name, c in result["car_following"].items():
         print(f"car following {name}: max position difference {c['max_pos_diff_m']:.1e} m")
     for flow, row in result["flow_sweep"].items():
@@ -505,6 +514,11 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--sumo", action="store_true", help="require SUMO (default: if installed)")
     mode.add_argument(
         "--reference", action="store_true", help="use the committed SUMO outputs even if installed"
+    )
+    v.add_argument(
+        "--update-reference",
+        action="store_true",
+        help="with SUMO: also replace the shipped SUMO reference (marlmerge/validation/reference)",
     )
     v.set_defaults(func=validate_cmd)
     return p

@@ -57,7 +57,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from marlmerge import files
-from marlmerge.config import ScenarioConfig, to_dict
+from marlmerge.config import ScenarioConfig, num, to_dict
 from marlmerge.learned_highway import (
     OFFSET_BOUNDS_MPS2,
     HighwayPolicy,
@@ -71,10 +71,11 @@ from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
 from marlmerge.policy_file import read_policy, write_policy
+from marlmerge.presets import run_scenario
 from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import INTERACTION_TERMS, LEARNED_HIGHWAY_TERMS
-from marlmerge.training.config import RUN_RULES, RunConfig
+from marlmerge.training.config import MAX_SEED, MAX_STEPS, RunConfig
 from marlmerge.training.logs import CsvLog, progress_bar
 from marlmerge.training.loop import (
     LearningGroup,
@@ -92,22 +93,6 @@ CHECKPOINT_VERSION = 3
 """Layout of `checkpoint.pt` (2: each group's learner, replay and generators under its name; 3:
 eight reward terms, `jerk` added)."""
 
-COTRAIN_RULES = {
-    **RUN_RULES,
-    "pool_size": ">=1",
-    **dict.fromkeys(
-        [
-            "ego_pretrain_sim_steps", "rounds", "adversary_sim_steps", "ego_sim_steps",
-            "ego_updates_per_sim_step", "highway_updates_per_sim_step", "ego_sigma_start",
-            "ego_sigma_end", "ego_sigma_cotrain", "highway_sigma_start", "highway_sigma_end",
-            "select_episodes", "select_seed",
-        ],
-        ">=0",
-    ),
-    "scripted_fraction": "[0,1]",
-}  # fmt: skip
-"""Signs and ranges of the co-training numbers (`marlmerge.config.check_values`)."""
-
 
 @dataclass(frozen=True)
 class CoTrainConfig(RunConfig):
@@ -123,42 +108,42 @@ class CoTrainConfig(RunConfig):
     """"adversarial" or "cooperative": the sign of the highway agents' interaction term."""
     ego_init: str = ""
     """A trained quadratic-Q ego (`policy.pt` or run folder) to start from; "" = pretrain here."""
-    ego_pretrain_sim_steps: int = 1_600_000
+    ego_pretrain_sim_steps: int = num(1_600_000, 0, MAX_STEPS)
     """Pretrain phase (skipped with `ego_init`): the paper's recipe against scripted traffic."""
-    rounds: int = 5
+    rounds: int = num(5, 0, 10_000)
     """(adversary, ego) phase pairs after pretraining."""
-    adversary_sim_steps: int = 400_000
+    adversary_sim_steps: int = num(400_000, 0, MAX_STEPS)
     """Simulator steps (summed over worlds) of each adversary phase; 0 skips them."""
-    ego_sim_steps: int = 400_000
+    ego_sim_steps: int = num(400_000, 0, MAX_STEPS)
     """Simulator steps of each ego phase; 0 skips them (e.g. adversaries for a fixed ego)."""
-    scripted_fraction: float = 0.5
+    scripted_fraction: float = num(0.5, 0.0, 1.0)
     """Ego phases: share of egos that meet scripted traffic rather than a pool snapshot."""
-    pool_size: int = 10
+    pool_size: int = num(10, 1, 10_000)
     """Adversary snapshots kept (oldest dropped first)."""
-    ego_updates_per_sim_step: float = 1.0
+    ego_updates_per_sim_step: float = num(1.0, 0.0, 100.0)
     """Ego updates per simulator step of ego experience (paper: 1)."""
-    highway_updates_per_sim_step: float = 0.5
+    highway_updates_per_sim_step: float = num(0.5, 0.0, 100.0)
     """Highway updates per simulator step of world experience (each step holds up to K agent
     transitions, so ~0.5 updates per stored agent transition)."""
-    ego_sigma_start: float = 1.0
-    ego_sigma_end: float = 0.1
+    ego_sigma_start: float = num(1.0, 0.0, 20.0)
+    ego_sigma_end: float = num(0.1, 0.0, 20.0)
     """Pretrain exploration, decaying linearly over the first half of the phase (paper)."""
-    ego_sigma_cotrain: float = 0.2
+    ego_sigma_cotrain: float = num(0.2, 0.0, 20.0)
     """Exploration noise of the ego in the ego phases (constant), m/s^2."""
-    highway_sigma_start: float = 0.8
-    highway_sigma_end: float = 0.1
+    highway_sigma_start: float = num(0.8, 0.0, 20.0)
+    highway_sigma_end: float = num(0.1, 0.0, 20.0)
     """Adversary phases: exploration noise decaying linearly over each phase's first half."""
-    select_episodes: int = 200
+    select_episodes: int = num(200, 0, 10_000_000)
     """After training, every ego of the run (the starting ego and the ego after each ego phase)
     meets scripted traffic and each of the run's own pool snapshots for this many greedy
     episodes; `policy.pt` is the ego with the fewest failures (collisions + truncations), the
     latest on ties. 0 keeps the last ego. The run's own adversaries only: held-out adversaries
     never take part."""
-    select_seed: int = 3_000_000
+    select_seed: int = num(3_000_000, 0, MAX_SEED)
     """First seed of the selection episodes (apart from `eval_seed` and the grid's seeds)."""
 
     def __post_init__(self) -> None:
-        self._check(COTRAIN_RULES)
+        self._check()
         if self.profile not in PROFILES:
             raise ValueError(f"profile must be one of {tuple(PROFILES)}, got {self.profile!r}")
         if not self.phases():
@@ -373,6 +358,7 @@ def cotrain(
 
     `stop_after_sim_steps` ends the run abruptly at that total step count, as a kill would.
     """
+    run_scenario(cfg)  # an unknown scenario fails before anything is written
     out = Path(out_dir)
     ckpt = None
     if resume:

@@ -3,15 +3,19 @@
 `save` writes atomically (a run killed while saving keeps the previous file) and turns NumPy
 arrays into tensors tagged to come back as arrays; `load` reads with
 `torch.load(weights_only=True)`, which refuses any pickled Python object, so a `policy.pt` or
-`checkpoint.pt` from someone else cannot run code on this machine. Every failure is a
-`ValueError` naming the file.
+`checkpoint.pt` from someone else cannot run code on this machine. Before that, the file must be a
+whole torch archive: each member's checksum is verified, so random bytes or a file damaged
+anywhere are refused as such. Every failure is a `ValueError` naming the file. The temporary file
+of a write killed midway is removed by the next write of the same file.
 """
 
 from __future__ import annotations
 
+import glob
 import os
 import pickle
 import re
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -51,8 +55,33 @@ def _atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     a reader, a resumed run or a kill sees the whole old file or the whole new one."""
     path = Path(path)
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    write(tmp)
-    os.replace(tmp, path)
+    _remove_stale(path)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)  # a failed write leaves nothing behind
+
+
+def _remove_stale(path: Path) -> None:
+    """Delete the temporary files of `path` left by processes killed while writing it (a live
+    writer's file is left alone)."""
+    for stale in path.parent.glob(f"{glob.escape(path.name)}.tmp*"):
+        pid = stale.name[len(path.name) + 4 :]
+        if pid.isdigit() and not _alive(int(pid)):
+            stale.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return False  # this process writes one file at a time: its own leftover is stale
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def save(obj: dict[str, Any], path: str | Path) -> None:
@@ -65,11 +94,33 @@ def write_text(path: str | Path, text: str) -> None:
     _atomically(path, lambda tmp: tmp.write_text(text, newline=""))
 
 
+def _check_archive(path: Path, what: str) -> None:
+    """`path` is a whole torch archive (a zip whose every member has its checksum): random bytes
+    and a file damaged anywhere are refused before anything is unpickled."""
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path}: not a readable {what} (an empty file)")
+    try:
+        if not zipfile.is_zipfile(path):
+            raise ValueError(
+                f"{path}: not a readable {what} (not a torch archive: random bytes, another "
+                "format, or a file cut short)"
+            )
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()
+    except (zipfile.BadZipFile, OSError, UnicodeDecodeError, ValueError) as e:
+        if isinstance(e, ValueError) and str(e).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: not a readable {what} (corrupt archive: {e})") from None
+    if damaged is not None:
+        raise ValueError(f"{path}: not a readable {what} (corrupt: member {damaged!r} is damaged)")
+
+
 def load(path: str | Path, what: str = "file") -> dict[str, Any]:
     """Read a file written by `save`; `what` names it in errors ("checkpoint", "policy")."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"no {what} at {path}")
+    _check_archive(path, what)
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
@@ -80,9 +131,8 @@ def load(path: str | Path, what: str = "file") -> dict[str, Any]:
             + (f" (the first: {found[0]})" if found else "")
             + "; checkpoints written by marlmerge 0.2 are of this kind: train them again"
         ) from None
-    except (RuntimeError, EOFError, OSError) as e:
-        why = "an empty file" if path.stat().st_size == 0 else f"truncated or corrupt: {e}"
-        raise ValueError(f"{path}: not a readable {what} ({why})") from None
+    except Exception as e:  # any other failure of a damaged file names the file
+        raise ValueError(f"{path}: not a readable {what} (truncated or corrupt: {e})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: not a marlmerge {what} (holds a {type(data).__name__})")
     return _restore(data)

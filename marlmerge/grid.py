@@ -40,7 +40,7 @@ from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.evaluate import rollout_first_egos
 from marlmerge.files import write_text
 from marlmerge.metrics import aggregate, episode_metrics
-from marlmerge.pettingzoo_env import find_preset, resolve_config
+from marlmerge.presets import find_preset, resolve_config
 from marlmerge.registry import (  # noqa: F401 - the grid's policies, re-exported
     LEARNED_KINDS,
     RULE_POLICIES,

@@ -15,8 +15,9 @@ Reward: the sum of the named terms (`marlmerge.spec.reward.EGO_TERMS`); `info` h
 `reward_<term>`, and `outcome` (0 running, 1 success, 2 collision, 3 truncated), `ego_time_s`,
 and with `ego.safety_filter` `filter_interventions` (the filter's overrides in the episode).
 Episode: one ramp vehicle; terminated on success or collision, truncated when it stalls or runs
-out of time. `reset(seed=s)` builds a fresh road in steady flow; `reset()` sends the next ramp
-vehicle into the same flowing traffic.
+out of time; a `step` after that raises `RuntimeError` until `reset`. `reset(seed=s)` builds a
+fresh road in steady flow, the same road for the same seed whatever came before; `reset()` sends
+the next ramp vehicle into the same flowing traffic.
 
 Mainline traffic is scripted, or given `highway_policy` (observations [B, K, 12] -> accelerations
 [B, K, 1], e.g. `marlmerge.ScriptedHighwayPolicy` or a loaded learned policy), the policy drives
@@ -39,8 +40,10 @@ import numpy as np
 from gymnasium import spaces
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.pettingzoo_env import resolve_config
+from marlmerge.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED, TrafficCore
+from marlmerge.sim.streams import check_seed
+from marlmerge.spec.action import as_actions
 from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import EGO_TERMS, total_reward
 
@@ -105,14 +108,7 @@ def _spaces(cfg: ScenarioConfig) -> tuple[spaces.Box, spaces.Box]:
 
 
 def _check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
-    a = np.asarray(action, dtype=np.float64)
-    if a.size != int(np.prod(shape)):
-        raise ValueError(f"action must have shape {shape}, got {a.shape} ({action!r})")
-    a = a.reshape(shape[0])
-    bad = ~np.isfinite(a)
-    if bad.any():
-        raise ValueError(f"action must be finite, got {a[bad][0]} (world {int(np.argmax(bad))})")
-    return a
+    return as_actions(action, shape, "action")
 
 
 def _infos(
@@ -152,10 +148,14 @@ class RampMergeEnv(gymnasium.Env):
         self.observation_space, self.action_space = _spaces(self.cfg)
         self.metadata = dict(self.metadata, render_fps=_env_step_fps(self.cfg))
         self._worlds: _EgoWorlds | None = None
+        self._done = False
+        """The episode ended: `step` refuses until `reset`."""
         self._viewer = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        check_seed(seed)
         super().reset(seed=seed)
+        self._done = False
         if self._worlds is None:
             self._worlds = _EgoWorlds(self.cfg, 1, self.highway_policy, seed)
         elif seed is not None:
@@ -173,10 +173,15 @@ class RampMergeEnv(gymnasium.Env):
     def step(self, action):
         if self._worlds is None:
             raise RuntimeError("step() before reset()")
+        if self._done:
+            raise RuntimeError(
+                "step() after the episode ended (terminated or truncated): call reset() first"
+            )
         obs, terms, outcome, t = self._worlds.step(_check_action(action, (1,)))
         o = int(outcome[0])
         terminated = o in (OUTCOME_SUCCESS, OUTCOME_COLLISION)
         truncated = o == OUTCOME_TRUNCATED
+        self._done = terminated or truncated
         infos = _infos(terms, outcome, t, self._worlds.interventions())
         info = {k: v[0] for k, v in infos.items()}
         self._render_human()
@@ -255,8 +260,10 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
 
     def reset(self, *, seed: int | Sequence[int] | None = None, options: dict | None = None):
         seeds = None
+        check_seed(seed, self.num_envs)
         if seed is not None:
-            seeds = [int(seed) + i for i in range(self.num_envs)] if np.isscalar(seed) else seed
+            scalar = not isinstance(seed, list | tuple | np.ndarray)
+            seeds = [int(seed) + i for i in range(self.num_envs)] if scalar else seed
         if self._worlds is None:
             self._worlds = _EgoWorlds(self.cfg, self.num_envs, self.highway_policy, seeds)
         elif seeds is not None:

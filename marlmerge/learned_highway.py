@@ -90,4 +90,7 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
     scen = from_dict(ScenarioConfig, saved["scenario"])
     low, high = saved["action_bounds_mps2"]
     state = saved["policy_state"]
-    return snapshot_policy(state["net"], state["hidden"], scen, (low, high))
+    try:
+        return snapshot_policy(state["net"], state["hidden"], scen, (low, high))
+    except (RuntimeError, TypeError, KeyError, AttributeError) as e:
+        raise ValueError(f"{path}: the saved weights do not fit the network: {e}") from None

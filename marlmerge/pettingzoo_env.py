@@ -12,11 +12,12 @@ Actions
     Box(1,) longitudinal acceleration in m/s^2, held for `sim.action_repeat` simulator steps.
     `ramp_0`: [-4.5, 2.5] by default; `highway_*`: `sim.highway_agent_accel_bounds_mps2`
     (the same by default; scripted background traffic keeps the vehicle limits).
-    Out-of-range values are clipped; NaN, infinite, wrongly shaped actions, agents that are not in
-    `possible_agents` and missing actions of live agents raise `ValueError` naming the agent and the
-    value. Actions for possible agents that are not live (done, or not in this episode's roster) are
-    ignored, as torchrl's PettingZoo wrapper sends an action for every agent of a group. Controlled
-    highway agents keep their lane.
+    Out-of-range values are clipped; NaN, infinite, non-numeric or wrongly shaped actions, agents
+    that are not in `possible_agents` and missing actions of live agents raise `ValueError` naming
+    the agent and the value (`marlmerge.spec.action`). Actions for possible agents that are not
+    live (done, or not in this episode's roster) are checked the same way, then ignored, as
+    torchrl's PettingZoo wrapper sends an action for every agent of a group. Controlled highway
+    agents keep their lane.
 
 Observations
     Box float32, scaled; layouts in `marlmerge.spec.observation` (the ego's by `ego.observation`:
@@ -61,38 +62,16 @@ from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from marlmerge.config import ScenarioConfig, load_scenario
-from marlmerge.presets import preset_dir
+from marlmerge.config import ScenarioConfig
+from marlmerge.presets import find_preset, resolve_config  # noqa: F401  (their home: presets)
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
+from marlmerge.sim.streams import check_seed
+from marlmerge.spec.action import as_actions
 from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 
 EGO_AGENT = "ramp_0"
 ENV_NAME = "marlmerge_ramp_v1"
-
-
-def resolve_config(config: ScenarioConfig | str | Path | None, **overrides: Any) -> ScenarioConfig:
-    """A `ScenarioConfig` from a config, a preset path or name in `envs/`, or the defaults."""
-    if config is None:
-        cfg = ScenarioConfig()
-    elif isinstance(config, ScenarioConfig):
-        cfg = config
-    else:
-        cfg = load_scenario(find_preset(config))
-    return cfg.replace(**overrides) if overrides else cfg
-
-
-def find_preset(name: str | Path) -> Path:
-    """A preset file: a path, or a name looked up in the repository's `envs/` folder."""
-    path = Path(name)
-    if path.suffix == ".toml" and path.exists():
-        return path
-    envs_dir = preset_dir("envs")
-    candidate = envs_dir / f"{path.stem}.toml"
-    if candidate.exists():
-        return candidate
-    known = sorted(p.stem for p in envs_dir.glob("*.toml")) if envs_dir.exists() else []
-    raise ValueError(f"unknown scenario preset {str(name)!r} (known: {', '.join(known) or 'none'})")
 
 
 def reward_terms(info: dict[str, Any]) -> dict[str, float]:
@@ -167,6 +146,7 @@ class RampMergeParallelEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | None = None, options: dict | None = None):
+        check_seed(seed)
         if self.core is None:
             self.core = TrafficCore(self.cfg, batch_size=1, seed=seed)
         elif seed is not None:
@@ -228,17 +208,12 @@ class RampMergeParallelEnv(ParallelEnv):
         if missing:
             raise ValueError(f"no action for live agent {missing[0]!r}")
         out = {}
-        for agent in self.agents:
-            act = actions[agent]
-            arr = np.asarray(act, dtype=np.float64)
-            if arr.shape not in ((1,), ()):
-                raise ValueError(
-                    f"action of {agent!r} must have shape (1,), got shape {arr.shape} ({act!r})"
-                )
-            val = float(arr.reshape(()))
-            if not np.isfinite(val):
-                raise ValueError(f"action of {agent!r} must be finite, got {val}")
-            out[agent] = val  # the core clips to the agent's bounds
+        for agent, act in actions.items():  # a not-live agent's action is checked, then ignored
+            live = agent in self.agents
+            who = f"action of {agent!r}" + ("" if live else " (not live this step)")
+            val = float(as_actions(act, (1,), who, exact=True)[0])
+            if live:
+                out[agent] = val  # the core clips to the agent's bounds
         return out
 
     def step(self, actions: dict[str, Any]):

@@ -23,10 +23,12 @@ network's bounds the residual bounds it was trained with.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 from marlmerge import files
+from marlmerge.config import ScenarioConfig, from_dict
 from marlmerge.spec.observation import EGO_FEATURES, EGO_LAYOUTS, HIGHWAY_FEATURES
 
 FORMAT = "marlmerge-policy"
@@ -76,17 +78,43 @@ def write_policy(
     )
 
 
+ALGORITHMS = {"ego": ("quadq", "dqn", "td3"), "highway": ("quadq-residual",)}
+"""The algorithms a policy file of each group may name."""
+STATE_KEYS = {
+    "quadq": ("net", "hidden"),
+    "dqn": ("net", "hidden", "layers", "levels"),
+    "td3": ("net", "hidden", "layers"),
+    "quadq-residual": ("net", "hidden"),
+}
+"""What `policy_state` must hold for each algorithm (its loader rebuilds the network from it)."""
+TOP_KEYS = {
+    "format": str,
+    "version": int,
+    "group": str,
+    "algorithm": str,
+    "observation": dict,
+    "action_bounds_mps2": list | tuple,
+    "policy_state": dict,
+    "config": dict,
+    "scenario": dict,
+}
+"""Every key of a policy file and its type."""
+
+
 def read_policy(path: str | Path, group: str) -> dict[str, Any]:
     """A policy file of `group` (a file, or a run folder holding the group's default file),
-    upgraded to the current version and checked against this version's observation tables."""
+    upgraded to the current version and checked against this version's observation tables.
+    A file that lacks a key, holds a value of the wrong type, names an unknown algorithm or
+    whose scenario is not a valid one is a `ValueError` naming the file and the key."""
     path = Path(path)
     if path.is_dir():
         path = path / DEFAULT_FILE[group]
     saved = files.load(path, f"saved {group} policy")
     if "format" not in saved:
-        saved = _from_v0(saved, group)
+        saved = _from_v0(saved, group, path)
     elif saved["format"] != FORMAT:
         raise ValueError(f"{path}: not a marlmerge policy file (format {saved['format']!r})")
+    _check_keys(saved, path)
     if saved["version"] > VERSION:
         raise ValueError(
             f"{path}: written by a newer marlmerge (policy format version {saved['version']}, "
@@ -95,16 +123,76 @@ def read_policy(path: str | Path, group: str) -> dict[str, Any]:
     if saved["group"] != group:
         raise ValueError(f"{path}: a {saved['group']} policy, not a {group} policy")
     names = feature_names(group, saved.get("scenario"))
-    if list(saved["observation"]["features"]) != names:
+    if list(saved["observation"].get("features", [])) != names:
         raise ValueError(
-            f"{path}: trained on the observation {saved['observation']['features']}, but this "
-            f"version's {group} observation is {names}: retrain it"
+            f"{path}: trained on the observation {saved['observation'].get('features')}, but "
+            f"this version's {group} observation is {names}: retrain it"
         )
+    _check_contents(saved, path, group)
     return saved
 
 
-def _from_v0(saved: dict[str, Any], group: str) -> dict[str, Any]:
+def _check_keys(saved: dict[str, Any], path: Path) -> None:
+    for key, kind in TOP_KEYS.items():
+        if key not in saved:
+            raise ValueError(f"{path}: not a whole policy file (no {key!r} key)")
+        if not isinstance(saved[key], kind) or isinstance(saved[key], bool):
+            raise ValueError(
+                f"{path}: policy file key {key!r} holds a {type(saved[key]).__name__}, "
+                f"not a {getattr(kind, '__name__', 'list')}"
+            )
+
+
+def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
+    """The algorithm, its state, the bounds and the scenario are what a loader can use."""
+    algorithm = saved["algorithm"]
+    if algorithm not in ALGORITHMS[group]:
+        raise ValueError(
+            f"{path}: unknown {group} algorithm {algorithm!r} (one of "
+            f"{', '.join(ALGORITHMS[group])})"
+        )
+    missing = [k for k in STATE_KEYS[algorithm] if k not in saved["policy_state"]]
+    if missing:
+        raise ValueError(f"{path}: policy_state of a {algorithm} policy lacks {missing[0]!r}")
+    state = saved["policy_state"]
+    for key in ("hidden", "layers"):
+        if key in STATE_KEYS[algorithm] and not (
+            isinstance(state[key], int) and not isinstance(state[key], bool) and state[key] >= 1
+        ):
+            raise ValueError(
+                f"{path}: policy_state.{key} must be an integer >= 1, got {state[key]!r}"
+            )
+    bounds = saved["action_bounds_mps2"]
+    ok = len(bounds) == 2 and all(isinstance(b, int | float) for b in bounds)
+    if not ok or not all(math.isfinite(b) for b in bounds) or not bounds[0] < bounds[1]:
+        raise ValueError(f"{path}: action_bounds_mps2 must be [low, high], got {bounds!r}")
+    try:
+        from_dict(ScenarioConfig, saved["scenario"])
+    except ValueError as err:
+        raise ValueError(f"{path}: the policy's scenario is not valid: {err}") from None
+
+
+def load_weights(module: Any, state: Any, path: str | Path) -> None:
+    """`module.load_state_dict(state)`; weights that do not fit the network named in the file
+    are a `ValueError` naming the file."""
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, TypeError, KeyError, AttributeError) as e:
+        raise ValueError(f"{path}: the saved weights do not fit the network: {e}") from None
+
+
+def _from_v0(saved: dict[str, Any], group: str, path: Path) -> dict[str, Any]:
     """A marlmerge 0.2 file (no `format`) in the current layout."""
+    needed = ("scenario", "net") + (("hidden",) if group == "highway" else ())
+    missing = [k for k in needed if k not in saved]
+    if missing:
+        raise ValueError(
+            f"{path}: not a marlmerge policy file (no 'format' key, and not a file of 0.2 "
+            f"either: it has no {missing[0]!r})"
+        )
+    if group == "ego" and saved.get("algorithm", "quadq") == "quadq":
+        if not isinstance(saved.get("config"), dict) or "hidden" not in saved["config"]:
+            raise ValueError(f"{path}: a 0.2 quadq policy file without config.hidden")
     if group == "ego":
         algorithm = saved.get("algorithm", "quadq")
         bounds = saved["scenario"]["ego"]["accel_bounds_mps2"]

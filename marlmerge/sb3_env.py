@@ -24,7 +24,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.gym_env import HighwayPolicy, _check_action, _EgoWorlds, _infos, _spaces
-from marlmerge.pettingzoo_env import resolve_config
+from marlmerge.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 
 

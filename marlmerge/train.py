@@ -33,11 +33,9 @@ from marlmerge.learners.base import Learner
 from marlmerge.learners.baselines_rl import make_learner as make_peer_learner
 from marlmerge.learners.quadq import GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
-from marlmerge.pettingzoo_env import resolve_config
 from marlmerge.policy_file import write_policy
+from marlmerge.presets import resolve_config, run_scenario
 from marlmerge.training.config import (
-    RUN_RULES,
-    TRAIN_RULES,
     UPDATE_PATHS,
     DqnConfig,
     RunConfig,
@@ -199,6 +197,7 @@ def train(
     """Run (or resume) training; writes logs, checkpoints, the policy, the evaluation and the
     plots. `stop_after_sim_steps` ends the run abruptly at that step without checkpointing, as a
     kill would (used by the resume tests)."""
+    run_scenario(cfg)  # an unknown scenario fails before anything is written
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -372,8 +371,6 @@ def _finish_resumed(cfg: TrainConfig, out: Path, ckpt: dict[str, Any]) -> TrainR
 
 __all__ = [
     "PRESET_KINDS",
-    "RUN_RULES",
-    "TRAIN_RULES",
     "UPDATE_PATHS",
     "DqnConfig",
     "RunConfig",

@@ -40,3 +40,12 @@ def test_the_site_builds_strictly(tmp_path):
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     assert (tmp_path / "site" / "api" / "index.html").exists()
+
+
+def test_the_reliability_page_prints_the_schemas_bounds():
+    from marlmerge.config import ScenarioConfig, bounds_markdown
+    from marlmerge.training.config import TrainConfig
+
+    page = (ROOT / "docs" / "reliability.md").read_text()
+    table = page.split("<!-- bounds:start -->\n")[1].split("<!-- bounds:end -->")[0]
+    assert table.strip() == bounds_markdown(ScenarioConfig, TrainConfig).strip()

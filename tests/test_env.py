@@ -166,5 +166,7 @@ def test_highway_agent_that_leaves_the_road_terminates():
             break
     assert gone is not None, "a highway agent flooring it should reach the exit within 60 s"
     assert gone not in env.agents and EGO_AGENT in env.agents
-    # an action for an agent that is done is ignored, even a malformed one
-    env.step({**{a: np.zeros(1) for a in env.agents}, gone: np.array([np.nan])})
+    # an action for an agent that is done is checked, then ignored
+    with pytest.raises(ValueError, match=f"action of '{gone}' \\(not live this step\\)"):
+        env.step({**{a: np.zeros(1) for a in env.agents}, gone: np.array([np.nan])})
+    env.step({**{a: np.zeros(1) for a in env.agents}, gone: np.array([1.0])})

@@ -55,7 +55,7 @@ def test_every_policy_meets_the_same_episodes():
     import torch
 
     from marlmerge.evaluate import rollout_first_egos
-    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.presets import resolve_config
 
     scen = resolve_config(CONDITIONS[0])
 
@@ -159,7 +159,7 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
 
 
 def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(tmp_path):
-    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.presets import resolve_config
     from marlmerge.registry import scenario_for
 
     extended = tmp_path / "extended.toml"

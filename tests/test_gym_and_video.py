@@ -32,13 +32,13 @@ def test_single_env_with_given_highway_policies():
     env = marlmerge.RampMergeEnv(highway_policy=ScriptedHighwayPolicy("adversarial"))
     check_env(env)
     env.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan]))
     for _ in range(40):
         _, r, term, trunc, info = env.step(np.array([0.0], dtype=np.float32))
         assert r == pytest.approx(sum(v for k, v in info.items() if k.startswith("reward_")))
         if term or trunc:
             break
-    with pytest.raises(ValueError, match="finite"):
-        env.step(np.array([np.nan]))
 
 
 def _single_runs(seeds, actions):

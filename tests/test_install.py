@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from venvs import child_venv
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -16,8 +18,7 @@ def test_wheel_install_trains_and_runs_a_grid_from_another_directory(tmp_path):
     )
     venv = tmp_path / "venv"
     # the dependencies come from this interpreter's site-packages; marlmerge from the wheel
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
-    py = venv / "bin" / "python"
+    py = child_venv(venv)
     wheel = next(wheels.glob("marlmerge-*.whl"))
     subprocess.run(
         [str(py), "-m", "pip", "install", "-q", "--no-deps", "--force-reinstall", str(wheel)],
@@ -51,3 +52,22 @@ def test_wheel_install_trains_and_runs_a_grid_from_another_directory(tmp_path):
         "--episodes", "2", "--worlds", "2", "--backend", "serial", "--no-progress", "--out", "g",
     )  # fmt: skip
     assert "light mixed" in out and (work / "g" / "episodes.csv").exists()
+
+
+def test_a_test_venv_sees_the_packages_of_a_venv_that_runs_the_tests(tmp_path):
+    """The README's test command inside a user's venv: the test's own venv must reach that venv's
+    packages, not the base interpreter's (a package only the outer venv has stands for them)."""
+    outer = child_venv(tmp_path / "outer", with_pip=False)
+    probe_dir = Path(
+        subprocess.run(
+            [str(outer), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
+    )  # fmt: skip
+    (probe_dir / "only_in_the_outer_venv.py").write_text("VALUE = 42\n")
+    inner = child_venv(tmp_path / "inner", with_pip=False, python=str(outer))
+    out = subprocess.run(
+        [str(inner), "-c", "import only_in_the_outer_venv as m, gymnasium; print(m.VALUE)"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 0 and out.stdout.strip() == "42", out.stderr[-2000:]

@@ -79,7 +79,7 @@ def test_arrival_time_closed_forms():
 
 
 def test_bad_filter_values_are_named():
-    with pytest.raises(ValueError, match=r"ego\.safety_min_headway_s must be >= 0, got -1"):
+    with pytest.raises(ValueError, match=r"ego\.safety_min_headway_s must be in \[0, 10\], got -1"):
         ScenarioConfig().replace(**{"ego.safety_min_headway_s": -1.0})
     with pytest.raises(ValueError, match=r"ego\.safety_filter' must be true or false"):
         ScenarioConfig().replace(**{"ego.safety_filter": "yes"})

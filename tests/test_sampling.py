@@ -7,7 +7,7 @@ import pytest
 
 from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import MPH_TO_MPS, ScenarioConfig
-from marlmerge.pettingzoo_env import resolve_config
+from marlmerge.presets import resolve_config
 from marlmerge.sim import EGO, TrafficCore
 from marlmerge.sim import layout as L
 from marlmerge.sim.streams import world_seed_sequences

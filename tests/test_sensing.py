@@ -8,7 +8,7 @@ import pytest
 from scenes import same_with_and_without_jit, scene
 
 from marlmerge.config import ScenarioConfig, load_scenario
-from marlmerge.pettingzoo_env import find_preset
+from marlmerge.presets import find_preset
 from marlmerge.sim import TrafficCore
 from marlmerge.sim import layout as L
 from marlmerge.spec.observation import EGO_EXTENDED_FEATURES
@@ -158,8 +158,8 @@ def test_a_version_1_state_still_loads():
     ("key", "value", "match"),
     [
         ("sensing.latency_s", 0.15, r"sensing\.latency_s must be a multiple of sim\.dt_s"),
-        ("sensing.latency_s", 2.5, r"sensing\.latency_s must be <= 2 s, got 2\.5"),
-        ("sensing.position_noise_std_m", -0.1, r"sensing\.position_noise_std_m must be >= 0"),
+        ("sensing.latency_s", 2.5, r"sensing\.latency_s must be in \[0, 2\], got 2\.5"),
+        ("sensing.position_noise_std_m", -0.1, r"position_noise_std_m must be in \[0, 50\]"),
         ("sensing.speed_noise_std_mps", float("nan"), r"sensing\.speed_noise_std_mps.*finite"),
         ("sensing.occlusion", 1, r"sensing\.occlusion' must be true or false"),
     ],

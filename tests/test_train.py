@@ -225,7 +225,7 @@ def test_the_paper_learner_learns_to_beat_holding_its_speed(tmp_path):
     import torch
 
     from marlmerge.evaluate import evaluate_policy
-    from marlmerge.pettingzoo_env import resolve_config
+    from marlmerge.presets import resolve_config
 
     cfg = TrainConfig(
         name="learn",

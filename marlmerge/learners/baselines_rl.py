@@ -52,7 +52,7 @@ from marlmerge.learners.quadq import (
     notice_if_slow,
     unpack_rows,
 )
-from marlmerge.policy_file import read_policy
+from marlmerge.policy_file import load_weights, read_policy
 from marlmerge.spec.observation import EGO_FEATURES
 
 __all__ = [
@@ -690,7 +690,7 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     obs_dim = saved["observation"]["size"]
     if algorithm == "quadq":
         net = QuadraticQNet(obs_dim, state["hidden"], action_low=lo, action_high=hi)
-        net.load_state_dict(state["net"])
+        load_weights(net, state["net"], path)
         net.eval()
 
         @torch.no_grad()
@@ -702,7 +702,7 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
         levels = state["levels"].to(torch.float32)
         with seeded_init(0):
             mlp = _mlp(obs_dim, len(levels), state["hidden"], state["layers"])
-        mlp.load_state_dict(state["net"])
+        load_weights(mlp, state["net"], path)
         mlp.eval()
 
         @torch.no_grad()
@@ -715,7 +715,7 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
             actor = nn.Sequential(
                 _mlp(obs_dim, 1, state["hidden"], state["layers"]), ScaledTanh(lo, hi)
             )
-        actor.load_state_dict(state["net"])
+        load_weights(actor, state["net"], path)
         actor.eval()
 
         @torch.no_grad()

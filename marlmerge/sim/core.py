@@ -286,6 +286,7 @@ class TrafficCore:
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[rows] = True
         self._clear(rows)
+        self._served_k = -1  # the cleared worlds hold nothing drawn: the next call draws ahead
         for b in rows:
             if self.cfg.sample.active:
                 self._draw_scenario(b)

@@ -54,24 +54,42 @@ START_SPEED_HALF_WIDTH_MPS = 3.0
 WorldSeed = int | np.random.SeedSequence
 
 
+def is_seed(value: object) -> bool:
+    """A non-negative integer (Python or NumPy; not a bool, not a float such as 1.0)."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= 0
+
+
+def check_seed(seed: object, batch_size: int | None = None) -> None:
+    """`seed` is None, a non-negative integer, or (with `batch_size`) a list of one such
+    integer or `SeedSequence` per world; anything else is a `ValueError` naming the value."""
+    if seed is None or is_seed(seed):
+        return
+    per_world = batch_size is not None and isinstance(seed, list | tuple | np.ndarray)
+    if not per_world:
+        raise ValueError(
+            f"seed must be None or a non-negative integer, got {seed!r} ({type(seed).__name__})"
+        )
+    seeds = list(seed)  # type: ignore[call-overload]
+    if len(seeds) != batch_size:
+        raise ValueError(f"seed: need one seed per world ({batch_size}), got {len(seeds)}")
+    bad = [s for s in seeds if not (is_seed(s) or isinstance(s, np.random.SeedSequence))]
+    if bad:
+        raise ValueError(
+            "seed: per-world seeds must be non-negative integers or SeedSequences, got "
+            f"{bad[0]!r} ({type(bad[0]).__name__})"
+        )
+
+
 def world_seed_sequences(
     batch_size: int, seed: int | Sequence[WorldSeed] | None, rows: np.ndarray
 ) -> list[np.random.SeedSequence]:
     """The seed sequence of each world in `rows` (see the module docstring)."""
+    check_seed(seed, batch_size)
     if seed is None:
         return [np.random.SeedSequence() for _ in rows]
-    if isinstance(seed, int | np.integer):
+    if is_seed(seed):
         return [np.random.SeedSequence(int(seed), spawn_key=(int(i),)) for i in rows]
-    seeds = list(seed)
-    if len(seeds) != batch_size:
-        raise ValueError(f"seed: need one seed per world ({batch_size}), got {len(seeds)}")
-    bad = [
-        s
-        for s in seeds
-        if not isinstance(s, int | np.integer | np.random.SeedSequence) or isinstance(s, bool)
-    ]
-    if bad:
-        raise ValueError(f"seed: per-world seeds must be integers or SeedSequences, got {bad[0]!r}")
+    seeds = list(seed)  # type: ignore[arg-type]
     return [
         seeds[i]
         if isinstance(seeds[i], np.random.SeedSequence)

@@ -3,8 +3,8 @@ kinds of run built on them (`TrainConfig` here, `marlmerge.cotrain.CoTrainConfig
 
 A preset (TOML in `trainers/`) names its kind (`kind = "train"` or `"cotrain"`); its keys are the
 fields below, the algorithm tables as TOML tables (`[dqn]`, `[td3]`). Every number is validated
-where the config is built: finite, and the sign or range of `RUN_RULES` / `TRAIN_RULES`, with an
-error naming the full key and the value.
+where the config is built: finite, and within the `Bounds` declared beside its field
+(`marlmerge.config.num`), with an error naming the full key and the value.
 """
 
 from __future__ import annotations
@@ -12,40 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from marlmerge.config import check_values, require
+from marlmerge.config import check_values, num, positive, require
 from marlmerge.learners.baselines_rl import ALGORITHMS
 from marlmerge.learners.quadq import PAPER_GAMMA
 
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
 
-RUN_RULES = {
-    **dict.fromkeys(
-        [
-            "num_worlds", "env_steps_per_batch", "batch_size", "target_update_period", "hidden",
-            "replay_capacity", "updates_per_call", "threads", "loss_log_every",
-            "checkpoint_every_sim_steps", "eval_worlds",
-        ],
-        ">=1",
-    ),
-    **dict.fromkeys(["seed", "learning_starts", "eval_episodes", "eval_seed"], ">=0"),
-    "lr": ">0",
-}  # fmt: skip
-"""Signs and ranges of the numbers every run has (`marlmerge.config.check_values`)."""
-
-TRAIN_RULES = {
-    **RUN_RULES,
-    "total_sim_steps": ">=1",
-    **dict.fromkeys(["updates_per_sim_step", "sigma_start", "sigma_end"], ">=0"),
-    "sigma_decay_fraction": "[0,1]",
-    "dqn.hidden_layers": ">=1",
-    "dqn.epsilon_start": "[0,1]",
-    "dqn.epsilon_end": "[0,1]",
-    "td3.hidden_layers": ">=1",
-    "td3.policy_delay": ">=1",
-    "td3.target_noise": ">=0",
-    "td3.target_noise_clip": ">=0",
-}
-"""... and of a `TrainConfig`."""
+MAX_STEPS = 10**12
+"""Step counts and periods are at most this."""
+MAX_SEED = 2**63 - 1
+"""Seeds are integers in [0, MAX_SEED]."""
 
 
 @dataclass(frozen=True)
@@ -61,44 +37,44 @@ class RunConfig:
     """Run name; outputs go to `runs/<name>` unless `--out` says otherwise."""
     scenario: str = "default"
     """Scenario preset in `envs/` (or a path): the traffic the run trains in."""
-    seed: int = 0
+    seed: int = num(0, 0, MAX_SEED)
     """Seeds the traffic, the networks, exploration noise and replay sampling."""
-    num_worlds: int = 32
+    num_worlds: int = num(32, 1, 65_536)
     """B: independent worlds stepped together, each with its own ego, feeding one buffer."""
-    env_steps_per_batch: int = 4
+    env_steps_per_batch: int = num(4, 1, 100_000)
     """Env steps per world in each collector batch; updates follow each batch."""
-    batch_size: int = 32
+    batch_size: int = num(32, 1, 65_536)
     """M: minibatch size."""
-    gamma: float = PAPER_GAMMA
-    lr: float = 1.0e-3
-    target_update_period: int = 500
+    gamma: float = num(PAPER_GAMMA, 0.0, 1.0, low_open=True, high_open=True)
+    lr: float = positive(1.0e-3, 1.0)
+    target_update_period: int = num(500, 1, MAX_STEPS)
     """p: the target network is a copy of the online one, refreshed every p updates."""
-    hidden: int = 64
+    hidden: int = num(64, 1, 4096)
     """Hidden width of the networks (quadq: each of A, B, C, two layers each)."""
-    replay_capacity: int = 200_000
+    replay_capacity: int = num(200_000, 1, 100_000_000)
     """Transitions kept in each replay buffer (oldest dropped first)."""
-    learning_starts: int = 1_000
+    learning_starts: int = num(1_000, 0, MAX_STEPS)
     """No updates until a buffer holds this many transitions (those updates are skipped)."""
     update_path: str = "compiled"
     """"compiled" (torch.compile of the fast path), "fast" (same, eager) or "torchrl" (the
     LossModule loop). The peers compile their gradient steps when "compiled"."""
-    updates_per_call: int = 10
+    updates_per_call: int = num(10, 1, 10_000)
     """Updates fused into one call of the fast path; must divide `target_update_period`."""
-    threads: int = 1
+    threads: int = num(1, 1, 256)
     """torch threads (tiny networks run fastest on one)."""
-    loss_log_every: int = 5
+    loss_log_every: int = num(5, 1, MAX_STEPS)
     """Log the loss every this many updates (the paper stores it every 5 steps)."""
-    checkpoint_every_sim_steps: int = 200_000
+    checkpoint_every_sim_steps: int = num(200_000, 1, MAX_STEPS)
     """Checkpoint interval; a killed run resumes from its last checkpoint."""
-    eval_episodes: int = 200
+    eval_episodes: int = num(200, 0, 10_000_000)
     """Greedy evaluation after training: this many held-out episodes ..."""
-    eval_seed: int = 1_000_000
+    eval_seed: int = num(1_000_000, 0, MAX_SEED)
     """... on roads seeded from here on (training seeds are small numbers)."""
-    eval_worlds: int = 50
+    eval_worlds: int = num(50, 1, 65_536)
     """Episodes evaluated in parallel (one seed per group of this many)."""
 
-    def _check(self, rules: dict[str, str]) -> None:
-        check_values(self, rules)
+    def _check(self) -> None:
+        check_values(self)
         require(
             [
                 (
@@ -115,7 +91,6 @@ class RunConfig:
                     f"updates_per_call ({self.updates_per_call}) must divide "
                     f"target_update_period ({self.target_update_period})",
                 ),
-                (0.0 < self.gamma < 1.0, f"gamma must lie in (0, 1), got {self.gamma}"),
             ]
         )
 
@@ -124,16 +99,16 @@ class RunConfig:
 class DqnConfig:
     """`[dqn]`: the DQN peer (torchrl `DQNLoss` over discrete acceleration levels)."""
 
-    hidden_layers: int = 2
+    hidden_layers: int = num(2, 1, 16)
     """Hidden ReLU layers of width `hidden` in the Q-network."""
-    levels: int = 7
+    levels: int = num(7, 2, 1001)
     """Acceleration levels evenly spaced over the ego bounds, both ends included."""
     double: bool = False
     """Double DQN target (online argmax, target value); the target is a hard copy every
     `target_update_period` updates."""
-    epsilon_start: float = 1.0
+    epsilon_start: float = num(1.0, 0.0, 1.0)
     """Epsilon-greedy exploration, epsilon falling linearly from this ..."""
-    epsilon_end: float = 0.05
+    epsilon_end: float = num(0.05, 0.0, 1.0)
     """... to this over `sigma_decay_fraction` of `total_sim_steps`, then constant."""
 
 
@@ -142,15 +117,15 @@ class Td3Config:
     """`[td3]`: the TD3 peer. Its exploration is the Gaussian noise of `sigma_start` /
     `sigma_end`, m/s^2."""
 
-    hidden_layers: int = 2
+    hidden_layers: int = num(2, 1, 16)
     """Hidden ReLU layers of width `hidden` in the actor and each critic."""
-    tau: float = 0.005
+    tau: float = positive(0.005, 1.0)
     """Polyak factor of the target networks (updated with each actor step)."""
-    policy_delay: int = 2
+    policy_delay: int = num(2, 1, 1000)
     """Critic updates per actor update."""
-    target_noise: float = 0.7
+    target_noise: float = num(0.7, 0.0, 20.0)
     """Std of the target-policy smoothing noise, m/s^2 (TD3's 0.2 x half-range 3.5) ..."""
-    target_noise_clip: float = 1.75
+    target_noise_clip: float = num(1.75, 0.0, 20.0)
     """... clipped to +- this, m/s^2 (TD3's 0.5 x 3.5)."""
 
 
@@ -160,16 +135,16 @@ class TrainConfig(RunConfig):
 
     KIND: ClassVar[str] = "train"
 
-    total_sim_steps: int = 1_600_000
+    total_sim_steps: int = num(1_600_000, 1, MAX_STEPS)
     """N: simulator steps of ego experience, summed over all worlds (paper: 1.6 M)."""
-    updates_per_sim_step: float = 1.0
+    updates_per_sim_step: float = num(1.0, 0.0, 100.0)
     """Gradient updates per simulator step of experience (paper: 1, i.e. k per transition)."""
-    sigma_start: float = 1.0
+    sigma_start: float = num(1.0, 0.0, 20.0)
     """Exploration (quadq, td3): std of the Gaussian noise on the greedy action at the start,
     m/s^2 ..."""
-    sigma_end: float = 0.1
+    sigma_end: float = num(0.1, 0.0, 20.0)
     """... decaying linearly to this ..."""
-    sigma_decay_fraction: float = 0.5
+    sigma_decay_fraction: float = num(0.5, 0.0, 1.0)
     """... over this fraction of `total_sim_steps`, then constant (dqn: epsilon likewise)."""
     algorithm: str = "quadq"
     """Learner: "quadq" (the paper's quadratic Q), "dqn" (discrete levels, `[dqn]`) or "td3"
@@ -178,17 +153,12 @@ class TrainConfig(RunConfig):
     td3: Td3Config = field(default_factory=Td3Config)
 
     def __post_init__(self) -> None:
-        self._check(TRAIN_RULES)
+        self._check()
         require(
             [
                 (
                     self.algorithm in ALGORITHMS,
                     f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
-                ),
-                (self.dqn.levels >= 2, f"dqn.levels must be >= 2, got {self.dqn.levels}"),
-                (
-                    0.0 < self.td3.tau <= 1.0,
-                    f"td3.tau must lie in (0, 1], got {self.td3.tau}",
                 ),
             ]
         )

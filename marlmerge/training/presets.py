@@ -72,9 +72,16 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
     del data["kind"]
     data.setdefault("name", path.stem)
     try:
-        return from_dict(cls, with_overrides(data, overrides))
+        preset = from_dict(cls, with_overrides(dict(data), {}))
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None
+    if not overrides:
+        return preset
+    try:
+        return from_dict(cls, with_overrides(data, overrides))
+    except ValueError as err:  # the preset alone is valid: the overrides are to blame
+        sets = ", ".join(f"{k}={v!r}" for k, v in overrides.items())
+        raise ValueError(f"--set {sets} (on {path.name}): {err}") from None
 
 
 def saved_config(cls: type[C], data: dict[str, Any]) -> C:

@@ -1,8 +1,10 @@
 """`marlmerge validate`: run the validation scenarios in both simulators, compare, write a report.
 
 Without SUMO, the committed reference outputs of SUMO (`reference/sumo_reference.npz`, written
-by a run with SUMO installed) stand in for it; with SUMO, it is run afresh and the reference is
-rewritten. The report goes to `docs/validation/`: `README.md` (tables against the targets),
+by a run with SUMO installed) stand in for it; with SUMO, it is run afresh and its outputs are
+written beside the report (`OUT/sumo_reference.npz`); the shipped reference inside the package
+is rewritten only when asked (`--update-reference`, from a source checkout). The report goes to
+`--out` (default `docs/validation/`): `README.md` (tables against the targets),
 `results.json`, and plots of the car-following trajectories, the fundamental diagram and the
 time-headway distributions.
 """
@@ -134,22 +136,30 @@ def validate(
     out_dir: str | Path = "docs/validation",
     use_sumo: bool | None = None,
     seeds: tuple[int, ...] = SEEDS,
+    update_reference: bool = False,
 ) -> dict[str, Any]:
-    """Run marlmerge (and SUMO when installed, else its reference), compare, write the report."""
+    """Run marlmerge (and SUMO when installed, else its reference), compare, write the report.
+    Everything is written under `out_dir`; `update_reference` (with SUMO, the default scenario
+    and seeds) also replaces the shipped reference `REFERENCE`."""
     cfg = cfg or ScenarioConfig()
     use_sumo = sumo.available() if use_sumo is None else use_sumo
+    if update_reference and not (use_sumo and seeds == SEEDS and cfg == ScenarioConfig()):
+        raise ValueError(
+            "--update-reference needs SUMO, the default scenario and the default seeds"
+        )
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     ours = run_simulator(cfg, "marlmerge", seeds)
     if use_sumo:
         ref, version = run_simulator(cfg, "sumo", seeds), sumo.sumo_version()
-        if seeds == SEEDS and cfg == ScenarioConfig():
+        save_reference(ref, out / REFERENCE.name, version)
+        if update_reference:
             save_reference(ref, version=version)
     else:
         ref, version = load_reference()
     result = compare(ours, ref)
     result["sumo_version"] = version
     result["sumo_ran"] = bool(use_sumo)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(result, indent=1))
     _plots(ours, ref, out)
     (out / "README.md").write_text(_markdown(result, seeds))

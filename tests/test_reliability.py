@@ -1,0 +1,293 @@
+"""Bad inputs and odd call orders: each case gives a valid run or one clear error naming the key,
+agent, world or file, before any work starts (`docs/reliability.md`)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from marlmerge import RampMergeEnv, files, parallel_env
+from marlmerge.config import ScenarioConfig, bounds_table, to_dict
+from marlmerge.learners.quadq import QuadraticQNet
+from marlmerge.policy_file import read_policy, write_policy
+from marlmerge.sim import TrafficCore
+
+ROOT = Path(__file__).resolve().parent.parent
+SCEN = to_dict(ScenarioConfig())
+
+
+def _state(core: TrafficCore) -> list[np.ndarray]:
+    n = core.n_slots
+    return [core.vf[..., :n].copy(), core.vi[..., :n].copy(), core.wf.copy(), core.wi.copy()]
+
+
+def _same(a: list[np.ndarray], b: list[np.ndarray]) -> bool:
+    return all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b, strict=True))
+
+
+# ---------------------------------------------------------------------- 1. one road per seed
+@pytest.mark.parametrize("seed", [0, 1000, 2**64])
+def test_a_seed_gives_the_same_road_whatever_came_before(seed):
+    fresh = _state(TrafficCore(ScenarioConfig(), batch_size=2, seed=seed))
+    core = TrafficCore(ScenarioConfig(), batch_size=2, seed=seed)
+    core.reset(seed=seed)  # straight after the constructor's reset
+    assert _same(_state(core), fresh)
+    for _ in range(60):  # and after a stretch of driving and a few merges
+        core.rollout(np.zeros(2))
+    core.reset(seed=seed)
+    assert _same(_state(core), fresh)
+
+
+def test_the_views_give_the_same_road_for_the_same_seed_twice():
+    env = parallel_env(control="ego")
+    first = env.reset(seed=0)[0]["ramp_0"]
+    env.step({"ramp_0": np.array([1.0], np.float32)})
+    assert np.array_equal(env.reset(seed=0)[0]["ramp_0"], first)
+    assert np.array_equal(env.reset(seed=0)[0]["ramp_0"], first)
+    gym = RampMergeEnv()
+    obs0 = gym.reset(seed=1000)[0]
+    rewards0 = [gym.step(np.array([0.5], np.float32))[1] for _ in range(5)]
+    obs1 = gym.reset(seed=1000)[0]
+    rewards1 = [gym.step(np.array([0.5], np.float32))[1] for _ in range(5)]
+    assert np.array_equal(obs0, obs1) and rewards0 == rewards1
+
+
+# ---------------------------------------------------------------------- 2. Gymnasium's order
+def test_gymnasium_step_after_the_episode_ended_is_an_error_until_reset():
+    env = RampMergeEnv(overrides={"ego.max_episode_s": 2.0})
+    env.reset(seed=3)
+    done = False
+    while not done:
+        _, _, terminated, truncated, _ = env.step(np.array([2.5], np.float32))
+        done = terminated or truncated
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.array([0.0], np.float32))
+    env.reset()
+    env.step(np.array([0.0], np.float32))  # the next ramp vehicle drives again
+
+
+# ---------------------------------------------------------------------- 3. policy files
+def _policy(tmp_path: Path) -> Path:
+    net = QuadraticQNet(7, 8, action_low=-4.5, action_high=2.5, generator=torch.Generator())
+    state = {"net": net.state_dict(), "hidden": 8}
+    write_policy(tmp_path / "p.pt", "ego", "quadq", (-4.5, 2.5), state, {}, SCEN)
+    return tmp_path / "p.pt"
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ({}, "not a marlmerge policy file"),
+        ({"format": "marlmerge-policy"}, "no 'version' key"),
+        ({"format": "marlmerge-policy", "version": 1, "group": "ego"}, "no 'algorithm' key"),
+    ],
+)
+def test_a_torch_file_without_the_policy_keys_names_the_file_and_the_key(
+    tmp_path, content, message
+):
+    files.save(content, tmp_path / "p.pt")
+    with pytest.raises(ValueError, match=message) as err:
+        read_policy(tmp_path / "p.pt", "ego")
+    assert str(tmp_path / "p.pt") in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"algorithm": "ppo"}, "unknown ego algorithm 'ppo'"),
+        ({"policy_state": {"net": {}}}, "lacks 'hidden'"),
+        ({"action_bounds_mps2": [2.0, -1.0]}, "action_bounds_mps2"),
+        ({"scenario": {"road": {"lane_width_m": -1.0}}}, "scenario is not valid"),
+        ({"observation": "paper"}, "holds a str, not a dict"),
+    ],
+)
+def test_a_policy_file_with_unusable_contents_names_the_file(tmp_path, change, message):
+    saved = files.load(_policy(tmp_path))
+    files.save({**saved, **change}, tmp_path / "p.pt")
+    with pytest.raises(ValueError, match=message):
+        read_policy(tmp_path / "p.pt", "ego")
+
+
+def test_weights_that_do_not_fit_the_network_name_the_file(tmp_path):
+    from marlmerge.learners.baselines_rl import load_policy
+
+    saved = files.load(_policy(tmp_path))
+    saved["policy_state"]["hidden"] = 16  # the saved weights are 8 wide
+    files.save(saved, tmp_path / "p.pt")
+    with pytest.raises(ValueError, match="do not fit the network"):
+        load_policy(tmp_path / "p.pt")
+
+
+def test_random_bytes_are_not_called_pickled_objects(tmp_path):
+    path = tmp_path / "policy.pt"
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(ValueError, match="not a torch archive") as err:
+        read_policy(path, "ego")
+    assert "pickled" not in str(err.value) and str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("offset_fraction", [0.05, 0.2, 0.5, 0.8, 0.97])
+def test_a_file_with_corrupted_bytes_is_refused_naming_the_file(tmp_path, offset_fraction):
+    path = _policy(tmp_path)
+    data = bytearray(path.read_bytes())
+    at = int(offset_fraction * (len(data) - 64))
+    data[at : at + 64] = np.random.default_rng(at).bytes(64)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="not a|corrupt") as err:
+        read_policy(path, "ego")
+    assert str(path) in str(err.value)
+
+
+def test_the_cli_refuses_a_keyless_policy_file_in_one_line(tmp_path):
+    files.save({}, tmp_path / "p.pt")
+    for args in (
+        ["evaluate", str(tmp_path / "p.pt"), "--episodes", "1", "--worlds", "1"],
+        ["grid", "--policy", f"quadq:{tmp_path / 'p.pt'}", "--episodes", "1", "--out", "g"],
+    ):
+        out = _cli(*args, cwd=tmp_path)
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
+        assert "not a marlmerge policy file" in out.stderr
+
+
+# ---------------------------------------------------------------------- 4. magnitudes
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("traffic.flow_vph_per_lane", 1e6),
+        ("sim.dt_s", 10.0),
+        ("ego.accel_bounds_mps2", (-1e9, 1e9)),
+        ("driver.delta", 1e6),
+        ("road.merge_zone_m", 1e-9),
+        ("sim.n_highway_agents", 1000),
+        ("road.speed_limit_mph", 1e6),
+        ("road.lane_width_m", 100.0),
+    ],
+)
+def test_implausible_magnitudes_are_refused_naming_the_key_and_the_value(key, value):
+    with pytest.raises(ValueError, match=key.replace(".", r"\.")) as err:
+        ScenarioConfig().replace(**{key: value})
+    assert "must be in" in str(err.value) and repr(value).split(",")[0] in str(err.value)
+
+
+def test_every_default_and_every_preset_lies_within_the_declared_bounds():
+    from marlmerge.config import load_scenario
+    from marlmerge.presets import preset_dir
+
+    for key, _default, rule in bounds_table(ScenarioConfig):
+        assert rule, key  # every number of the scenario has bounds
+    for path in sorted(preset_dir("envs").glob("*.toml")):
+        load_scenario(path)
+
+
+# ---------------------------------------------------------------------- 5. validate writes
+def test_validate_with_sumo_writes_only_under_out(tmp_path, monkeypatch):
+    from marlmerge.validation import report, sumo
+
+    reference = report.REFERENCE.read_bytes()
+    ref, _ = report.load_reference()
+    monkeypatch.setattr(sumo, "available", lambda: True)
+    monkeypatch.setattr(sumo, "sumo_version", lambda: "stand-in")
+    monkeypatch.setattr(report, "run_simulator", lambda cfg, name, seeds: ref)
+    monkeypatch.setattr(report, "_plots", lambda ours, ref, out: None)
+    report.validate(out_dir=tmp_path / "out", use_sumo=True)
+    assert report.REFERENCE.read_bytes() == reference  # the shipped reference is untouched
+    assert (tmp_path / "out" / "sumo_reference.npz").is_file()
+    with pytest.raises(ValueError, match="--update-reference needs SUMO"):
+        report.validate(out_dir=tmp_path / "o2", use_sumo=False, update_reference=True)
+
+
+# ---------------------------------------------------------------------- 7. messages
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "marlmerge", *args], cwd=cwd, capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+
+
+def test_a_bad_set_value_is_reported_against_the_set_not_the_preset():
+    from marlmerge.train import load_train_config
+
+    with pytest.raises(ValueError, match=r"^--set lr=-1\.0 \(on quick\.toml\): lr must be"):
+        load_train_config("quick", lr=-1.0)
+
+
+def test_an_unknown_scenario_is_refused_before_the_banner_and_before_any_file(tmp_path):
+    out = _cli("train", "quick", "--set", 'scenario="nope"', "--out", "run", cwd=tmp_path)
+    assert out.returncode == 2 and "unknown scenario preset 'nope'" in out.stderr
+    assert out.stdout == "" and not (tmp_path / "run").exists()
+
+
+def test_an_unknown_scenario_in_the_python_api_writes_nothing(tmp_path):
+    from marlmerge.train import TrainConfig, train
+
+    with pytest.raises(ValueError, match="scenario = 'nope'"):
+        train(TrainConfig(scenario="nope"), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_write_killed_midway_leaves_no_temporary_file_behind(tmp_path):
+    target = tmp_path / "checkpoint.pt"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid that no longer runs: its temporary file is stale
+    (tmp_path / f"checkpoint.pt.tmp{dead.pid}").write_bytes(b"")
+    (tmp_path / f"checkpoint.pt.tmp{os.getppid()}").write_bytes(b"")  # a live writer's: kept
+    files.save({"a": 1}, target)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "checkpoint.pt",
+        f"checkpoint.pt.tmp{os.getppid()}",
+    ]
+
+
+def test_evaluate_refuses_a_bad_scenario_before_importing_torch(tmp_path):
+    code = (
+        "import sys\n"
+        "from marlmerge.cli import main\n"
+        "rc = main(['evaluate', 'hold', '--scenario', 'nope'])\n"
+        "print(rc, 'torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert out.stdout.split() == ["2", "False"], out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("bad", [None, "abc", [None], float("nan"), True])
+def test_a_bad_action_names_the_agent(bad):
+    env = parallel_env(control="all")
+    env.reset(seed=0)
+    actions = {a: np.zeros(1, np.float32) for a in env.agents}
+    actions["ramp_0"] = bad
+    with pytest.raises(ValueError, match="action of 'ramp_0'"):
+        env.step(actions)
+    with pytest.raises(ValueError, match="action"):
+        _step(RampMergeEnv(), bad)
+
+
+def _step(env: RampMergeEnv, action) -> None:
+    env.reset(seed=0)
+    env.step(action)
+
+
+def test_a_nan_action_for_an_agent_that_is_not_live_is_refused():
+    env = parallel_env(control="all")
+    env.reset(seed=0)
+    idle = [a for a in env.possible_agents if a not in env.agents]
+    actions = {a: np.zeros(1, np.float32) for a in env.possible_agents}
+    target = idle[0] if idle else "highway_0"
+    if not idle:  # every highway agent is live: end one by leaving it out of the roster
+        env.agents.remove(target)
+    actions[target] = np.array([np.nan], np.float32)
+    with pytest.raises(ValueError, match=f"action of '{target}' \\(not live"):
+        env.step(actions)
+
+
+@pytest.mark.parametrize("seed", ["abc", 1.5, -1, True, [1, 2]])
+def test_a_seed_that_is_not_a_non_negative_integer_is_refused(seed):
+    with pytest.raises(ValueError, match="seed"):
+        parallel_env(control="ego").reset(seed=seed)
+    with pytest.raises(ValueError, match="seed"):
+        RampMergeEnv().reset(seed=seed)
+    with pytest.raises(ValueError, match="seed"):
+        TrafficCore(ScenarioConfig(), batch_size=1, seed=seed)
