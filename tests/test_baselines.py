@@ -33,6 +33,7 @@ def first_ego_outcomes(policy, cfg: ScenarioConfig, batch_size: int, seed: int) 
     return out
 
 
+@pytest.mark.slow
 def test_never_collides_in_cooperative_light_traffic_over_30_seeds():
     # "30 seeds": 30 freshly seeded roads, TrafficCore(batch_size=1, seed=s) for s in 0..29, each
     # in steady flow after the warm-up; the episode is the first ramp vehicle of each road.

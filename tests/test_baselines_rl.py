@@ -53,6 +53,7 @@ def _packed_rows(n: int, discrete: bool, seed: int = 0) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("algorithm", ["dqn", "td3"])
+@pytest.mark.slow
 def test_tiny_run_end_to_end_and_load_policy(tmp_path, algorithm):
     cfg = TrainConfig(**{**TINY, "algorithm": algorithm, "eval_episodes": 4, "eval_worlds": 4})
     rng_before = torch.get_rng_state()
@@ -83,6 +84,7 @@ def test_tiny_run_end_to_end_and_load_policy(tmp_path, algorithm):
 
 
 @pytest.mark.parametrize("algorithm", ["dqn", "td3"])
+@pytest.mark.slow
 def test_killed_run_resumes_bit_exact(tmp_path, algorithm):
     cfg = TrainConfig(**{**TINY, "algorithm": algorithm})
     straight = train(cfg, tmp_path / "a", progress=False)

@@ -77,6 +77,7 @@ def test_a_world_is_the_same_alone_or_in_a_batch_serial_or_parallel():
             together.next_ego(o4.ego_outcome != 0)
 
 
+@pytest.mark.slow
 def test_same_trajectory_with_the_compiler_off(tmp_path):
     code = textwrap.dedent("""
         import numpy as np

@@ -38,6 +38,7 @@ def _phases_logged(path):
         return [r["phase"] for r in csv.DictReader(fh)]
 
 
+@pytest.mark.slow
 def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp_path):
     cfg = _tiny()
     assert [k for k, _ in cfg.phases()] == ["pretrain", "adversary", "ego", "adversary", "ego"]
@@ -93,6 +94,7 @@ def test_the_preset_at_a_tiny_budget_runs_both_phases_and_writes_both_groups(tmp
         assert all(np.isfinite(r) for r in rewards.values())
 
 
+@pytest.mark.slow
 def test_a_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     cfg = _tiny(rounds=1)
     full = tmp_path / "full"
@@ -131,6 +133,7 @@ def test_bad_config_and_cli_errors_name_the_value(tmp_path, capsys):
     assert "rounds" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_runs_the_preset_and_reports_the_selection(tmp_path, capsys):
     sets = [a for k, v in {**TINY, "rounds": 1}.items() for a in ("--set", f"{k}={v}")]
     out = tmp_path / "run"

@@ -20,6 +20,7 @@ def _blocks(page: Path) -> list[str]:
 @pytest.mark.parametrize(
     "page", [p for p in PAGES if _blocks(p)], ids=lambda p: str(p.relative_to(ROOT))
 )
+@pytest.mark.slow
 def test_python_blocks_run(page, tmp_path):
     # the blocks of a page run in order, in one namespace, from a fresh folder
     code = "\n\n".join(_blocks(page))
@@ -29,6 +30,7 @@ def test_python_blocks_run(page, tmp_path):
     assert out.returncode == 0, f"{page.name}:\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}"
 
 
+@pytest.mark.slow
 def test_the_site_builds_strictly(tmp_path):
     pytest.importorskip("mkdocs", reason="the [docs] extra is not installed")
     out = subprocess.run(

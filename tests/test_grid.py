@@ -33,6 +33,7 @@ def _csv(path):
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
 def test_grid_writes_csv_summary_and_heatmaps_reproducibly(tmp_path, trained):
     policies = [parse_policy(p) for p in ("hold", "idm", "gap", f"paper=quadq:{trained}")]
     a = run_grid(policies, CONDITIONS, episodes=4, worlds=4, out_dir=tmp_path / "a", progress=False)
@@ -84,6 +85,7 @@ def test_policy_specs_are_checked():
         expand_conditions(["grid_nothing_*"])
 
 
+@pytest.mark.slow
 def test_cli_grid(tmp_path, capsys):
     assert (
         main(
@@ -158,6 +160,7 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
     assert "braking" in (tmp_path / "g" / "summary.md").read_text()
 
 
+@pytest.mark.slow
 def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(tmp_path):
     from marlmerge.presets import resolve_config
     from marlmerge.registry import scenario_for

@@ -18,6 +18,7 @@ from marlmerge.video import record_episodes
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # "human" windows without a display
 
 
+@pytest.mark.slow
 def test_registered_env_passes_check_env():
     env = gymnasium.make(marlmerge.ENV_ID, render_mode="rgb_array", config="adversarial")
     assert env.unwrapped.cfg.name == "adversarial"
@@ -80,6 +81,7 @@ def test_vector_env_equals_b_single_envs_with_the_same_seeds():
         assert np.array_equal(want[w][0], got[w][0])
 
 
+@pytest.mark.slow
 def test_record_video_wrapper_writes_a_video(tmp_path):
     env = gymnasium.make(marlmerge.ENV_ID, render_mode="rgb_array")
     env = gymnasium.wrappers.RecordVideo(env, str(tmp_path), episode_trigger=lambda e: e == 0)
@@ -92,6 +94,7 @@ def test_record_video_wrapper_writes_a_video(tmp_path):
     assert list(tmp_path.glob("*.mp4"))
 
 
+@pytest.mark.slow
 def test_episode_video_has_one_frame_per_simulator_step(tmp_path):
     import imageio.v2 as imageio
 
@@ -111,6 +114,7 @@ def test_episode_video_has_one_frame_per_simulator_step(tmp_path):
     assert len(imageio.mimread(gif)) == 12
 
 
+@pytest.mark.slow
 def test_pettingzoo_suite_on_every_entry_point():
     api_test(marlmerge.env(), num_cycles=200)
     seed_test(marlmerge.env, num_cycles=100)

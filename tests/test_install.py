@@ -4,11 +4,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from venvs import child_venv
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@pytest.mark.slow
 def test_wheel_install_trains_and_runs_a_grid_from_another_directory(tmp_path):
     wheels = tmp_path / "wheels"
     subprocess.run(

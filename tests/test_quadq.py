@@ -329,6 +329,7 @@ def test_fast_path_matches_lossmodule_and_adam():
     _fast_vs_reference(k=5)
 
 
+@pytest.mark.slow
 def test_fast_path_compiled_matches_lossmodule():
     # k = 1 keeps the compile short (a few seconds on 2 cores); training uses k = 10
     _fast_vs_reference(k=1, compile=True)

@@ -142,6 +142,7 @@ def test_a_file_with_corrupted_bytes_is_refused_naming_the_file(tmp_path, offset
     assert str(path) in str(err.value)
 
 
+@pytest.mark.slow
 def test_the_cli_refuses_a_keyless_policy_file_in_one_line(tmp_path):
     files.save({}, tmp_path / "p.pt")
     for args in (
@@ -215,6 +216,7 @@ def test_a_bad_set_value_is_reported_against_the_set_not_the_preset():
         load_train_config("quick", lr=-1.0)
 
 
+@pytest.mark.slow
 def test_an_unknown_scenario_is_refused_before_the_banner_and_before_any_file(tmp_path):
     out = _cli("train", "quick", "--set", 'scenario="nope"', "--out", "run", cwd=tmp_path)
     assert out.returncode == 2 and "unknown scenario preset 'nope'" in out.stderr

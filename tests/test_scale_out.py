@@ -47,6 +47,7 @@ def serial_csv(tmp_path_factory):
 
 
 @pytest.mark.parametrize("method", ["fork", "spawn"])
+@pytest.mark.slow
 def test_process_backend_gives_the_serial_csv_byte_for_byte(
     tmp_path, serial_csv, method, monkeypatch
 ):
@@ -58,6 +59,7 @@ def test_process_backend_gives_the_serial_csv_byte_for_byte(
     assert (tmp_path / "episodes.csv").read_bytes() == serial_csv
 
 
+@pytest.mark.slow
 def test_workers_are_forked_only_before_a_parallel_kernel_ran(tmp_path):
     import subprocess
     import sys
@@ -72,6 +74,7 @@ def test_workers_are_forked_only_before_a_parallel_kernel_ran(tmp_path):
     assert out.stdout.split() == (["fork", "spawn"] if sys.platform == "linux" else ["spawn"] * 2)
 
 
+@pytest.mark.slow
 def test_forked_workers_compile_the_kernels_they_need(tmp_path):
     # workers that compile (an empty kernel cache: a fresh install) re-read Numba's config
     # before any thread starts, so compiling does not trip over the one-thread setting
@@ -88,6 +91,7 @@ def test_forked_workers_compile_the_kernels_they_need(tmp_path):
     assert (tmp_path / "grid" / "episodes.csv").exists()
 
 
+@pytest.mark.slow
 def test_ray_backend_gives_the_serial_csv_byte_for_byte(tmp_path, serial_csv):
     ray = pytest.importorskip("ray")
     try:
@@ -119,6 +123,7 @@ def test_an_interrupted_grid_resumes_and_skips_finished_cells(tmp_path, serial_c
     assert (tmp_path / "episodes.csv").read_bytes() == serial_csv
 
 
+@pytest.mark.slow
 def test_a_killed_worker_is_retried_without_losing_or_duplicating_rows(tmp_path):
     episodes = 6
     want = tmp_path / "want"
@@ -161,6 +166,7 @@ def test_parse_seeds_and_bad_sweeps():
         sweep("quick", [0], "x", {"no_such_key": 1})
 
 
+@pytest.mark.slow
 def test_sweep_summarises_seeds_and_resumes(tmp_path):
     s = sweep("quick", [0, 1], tmp_path, dict(TINY), backend="serial", progress=False)
     assert s["seeds"] == [0, 1]

@@ -176,6 +176,7 @@ def test_the_realistic_preset_is_documented_and_loads():
     assert 0.1 <= s.latency_s <= 0.2 and s.occlusion and cfg.ego.observation == "extended"
 
 
+@pytest.mark.slow
 def test_same_sensed_trajectory_with_the_compiler_off(tmp_path):
     code = textwrap.dedent("""
         import sys

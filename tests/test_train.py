@@ -29,6 +29,7 @@ def _rows(path):
         return list(csv.reader(fh))
 
 
+@pytest.mark.slow
 def test_tiny_run_writes_logs_plots_checkpoint_and_evaluation(tmp_path):
     result = train(TrainConfig(**TINY), tmp_path, progress=False)
     for name in (
@@ -62,6 +63,7 @@ def test_tiny_run_writes_logs_plots_checkpoint_and_evaluation(tmp_path):
     assert ev["success_rate"] + ev["collision_rate"] + ev["truncation_rate"] == pytest.approx(1)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
     cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
     straight = train(cfg, tmp_path / "a", progress=False)
@@ -79,6 +81,7 @@ def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
+@pytest.mark.slow
 def test_torchrl_update_path_runs(tmp_path):
     cfg = TrainConfig(
         **{**TINY, "update_path": "torchrl", "total_sim_steps": 2_048, "eval_episodes": 4}
@@ -102,6 +105,7 @@ def test_presets_load_strictly(tmp_path):
         TrainConfig(update_path="jit")
 
 
+@pytest.mark.slow
 def test_cli_train_refuses_to_overwrite_and_resumes(tmp_path, capsys):
     out = tmp_path / "run"
     sets = [
@@ -121,6 +125,7 @@ def _snapshot(folder):
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_resuming_a_finished_run_changes_nothing_and_says_so(tmp_path, capsys):
     out = tmp_path / "run"
     sets = [
@@ -135,6 +140,7 @@ def test_resuming_a_finished_run_changes_nothing_and_says_so(tmp_path, capsys):
     assert _snapshot(out) == before
 
 
+@pytest.mark.slow
 def test_a_run_killed_during_its_final_evaluation_is_evaluated_on_resume(tmp_path):
     cfg = TrainConfig(**{**TINY, "eval_episodes": 4})
     full = train(cfg, tmp_path, progress=False)
@@ -161,6 +167,7 @@ def test_resume_refuses_a_set_that_differs_from_the_checkpoint(tmp_path, capsys)
 
 
 @pytest.mark.parametrize("damage", ["deleted", "cut"])
+@pytest.mark.slow
 def test_resume_refuses_missing_or_cut_logs_naming_the_file(tmp_path, damage):
     cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
     train(cfg, tmp_path, progress=False, stop_after_sim_steps=4_096)
@@ -186,6 +193,7 @@ class _Board:
         pass
 
 
+@pytest.mark.slow
 def test_tensorboard_gets_each_loss_and_each_ego_once(tmp_path, monkeypatch):
     import marlmerge.train as training
 
@@ -204,6 +212,7 @@ def test_tensorboard_gets_each_loss_and_each_ego_once(tmp_path, monkeypatch):
     assert {t for t in by_tag if t.startswith("charts/")} >= {"charts/gap_front", "charts/speed"}
 
 
+@pytest.mark.slow
 def test_a_slow_first_call_says_it_is_compiling(capsys):
     import time
 
@@ -218,6 +227,7 @@ def test_a_slow_first_call_says_it_is_compiling(capsys):
     assert "compiling..." in err and "never shown" not in err
 
 
+@pytest.mark.slow
 def test_the_paper_learner_learns_to_beat_holding_its_speed(tmp_path):
     """A small budget (200 k simulator steps, an eighth of the paper's) in light adversarial
     traffic: the greedy policy must succeed clearly more often than holding speed on the same

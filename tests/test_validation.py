@@ -30,6 +30,7 @@ def test_car_following_matches_sumo_ballistic_idm(case, reference):
         assert np.max(np.abs(ours.leader_pos_m - theirs.leader_pos_m)) <= 1e-6
 
 
+@pytest.mark.slow
 def test_flow_sweep_within_the_targets(reference):
     ours = report.SimResults()
     for flow in scenarios.FLOWS_VPHPL:
