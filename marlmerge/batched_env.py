@@ -44,6 +44,7 @@ from marlmerge.sim import (
     Roster,
     TrafficCore,
 )
+from marlmerge.spec.action import as_actions
 from marlmerge.spec.reward import EGO_TERMS, total_reward
 
 
@@ -132,11 +133,7 @@ class BatchedMergeEnv(EnvBase):
     def _actions(self, tensordict: TensorDictBase) -> np.ndarray:
         """The ego accelerations [B] of a step; NaN or infinite values raise, naming the world."""
         action = tensordict.get("action").reshape(self.num_worlds).to(torch.float64).cpu().numpy()
-        bad = ~np.isfinite(action)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"action of world {i} must be finite, got {action[i]}")
-        return action
+        return as_actions(action, (self.num_worlds,))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = self._simulate(self._actions(tensordict))

@@ -99,17 +99,15 @@ def _check_archive(path: Path, what: str) -> None:
     and a file damaged anywhere are refused before anything is unpickled."""
     if path.stat().st_size == 0:
         raise ValueError(f"{path}: not a readable {what} (an empty file)")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(
+            f"{path}: not a readable {what} (not a torch archive: random bytes, another "
+            "format, or a file cut short)"
+        )
     try:
-        if not zipfile.is_zipfile(path):
-            raise ValueError(
-                f"{path}: not a readable {what} (not a torch archive: random bytes, another "
-                "format, or a file cut short)"
-            )
         with zipfile.ZipFile(path) as archive:
             damaged = archive.testzip()
     except (zipfile.BadZipFile, OSError, UnicodeDecodeError, ValueError) as e:
-        if isinstance(e, ValueError) and str(e).startswith(str(path)):
-            raise
         raise ValueError(f"{path}: not a readable {what} (corrupt archive: {e})") from None
     if damaged is not None:
         raise ValueError(f"{path}: not a readable {what} (corrupt: member {damaged!r} is damaged)")

@@ -42,7 +42,7 @@ from gymnasium import spaces
 from marlmerge.config import ScenarioConfig
 from marlmerge.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED, TrafficCore
-from marlmerge.sim.streams import check_seed
+from marlmerge.sim.streams import check_seed, is_seed
 from marlmerge.spec.action import as_actions
 from marlmerge.spec.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.spec.reward import EGO_TERMS, total_reward
@@ -105,10 +105,6 @@ def _spaces(cfg: ScenarioConfig) -> tuple[spaces.Box, spaces.Box]:
         spaces.Box(-np.inf, np.inf, (ego_obs_size(cfg),), np.float32),
         spaces.Box(np.float32(lo), np.float32(hi), (1,), np.float32),
     )
-
-
-def _check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
-    return as_actions(action, shape, "action")
 
 
 def _infos(
@@ -177,7 +173,7 @@ class RampMergeEnv(gymnasium.Env):
             raise RuntimeError(
                 "step() after the episode ended (terminated or truncated): call reset() first"
             )
-        obs, terms, outcome, t = self._worlds.step(_check_action(action, (1,)))
+        obs, terms, outcome, t = self._worlds.step(as_actions(action, (1,)))
         o = int(outcome[0])
         terminated = o in (OUTCOME_SUCCESS, OUTCOME_COLLISION)
         truncated = o == OUTCOME_TRUNCATED
@@ -262,8 +258,7 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
         seeds = None
         check_seed(seed, self.num_envs)
         if seed is not None:
-            scalar = not isinstance(seed, list | tuple | np.ndarray)
-            seeds = [int(seed) + i for i in range(self.num_envs)] if scalar else seed
+            seeds = [int(seed) + i for i in range(self.num_envs)] if is_seed(seed) else seed
         if self._worlds is None:
             self._worlds = _EgoWorlds(self.cfg, self.num_envs, self.highway_policy, seeds)
         elif seeds is not None:
@@ -280,7 +275,7 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
     def step(self, actions):
         if self._worlds is None:
             raise RuntimeError("step() before reset()")
-        a = _check_action(actions, (self.num_envs, 1))
+        a = as_actions(actions, (self.num_envs, 1))
         restart = self._done.copy()
         if restart.any():  # next-step autoreset: these worlds send their next ramp vehicle and
             self._worlds.core.next_ego(restart)  # stand still this step (reward 0, not done)

@@ -14,7 +14,7 @@ from torch import Tensor
 from marlmerge.config import ScenarioConfig, from_dict, to_dict
 from marlmerge.learners.quadq import QuadraticQNet
 from marlmerge.policies import ScriptedHighwayPolicy
-from marlmerge.policy_file import read_policy, write_policy
+from marlmerge.policy_file import read_policy, weights_of, write_policy
 from marlmerge.spec.observation import HIGHWAY_FEATURES
 
 HighwayPolicy = Callable[[Tensor], Tensor]
@@ -90,7 +90,5 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
     scen = from_dict(ScenarioConfig, saved["scenario"])
     low, high = saved["action_bounds_mps2"]
     state = saved["policy_state"]
-    try:
+    with weights_of(path):
         return snapshot_policy(state["net"], state["hidden"], scen, (low, high))
-    except (RuntimeError, TypeError, KeyError, AttributeError) as e:
-        raise ValueError(f"{path}: the saved weights do not fit the network: {e}") from None

@@ -24,6 +24,8 @@ network's bounds the residual bounds it was trained with.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -78,8 +80,12 @@ def write_policy(
     )
 
 
-ALGORITHMS = {"ego": ("quadq", "dqn", "td3"), "highway": ("quadq-residual",)}
-"""The algorithms a policy file of each group may name."""
+ALGORITHMS: dict[str, tuple[str, ...]] = {
+    "ego": ("quadq", "dqn", "td3"),
+    "highway": ("quadq-residual",),
+}
+"""The algorithms a policy file of each group may name (the ego's: what `marlmerge train` can
+train, `TrainConfig.algorithm`)."""
 STATE_KEYS = {
     "quadq": ("net", "hidden"),
     "dqn": ("net", "hidden", "layers", "levels"),
@@ -172,13 +178,20 @@ def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
         raise ValueError(f"{path}: the policy's scenario is not valid: {err}") from None
 
 
-def load_weights(module: Any, state: Any, path: str | Path) -> None:
-    """`module.load_state_dict(state)`; weights that do not fit the network named in the file
-    are a `ValueError` naming the file."""
+@contextmanager
+def weights_of(path: str | Path) -> Iterator[None]:
+    """Around building a network from a policy file's state: weights that do not fit it are a
+    `ValueError` naming the file."""
     try:
-        module.load_state_dict(state)
+        yield
     except (RuntimeError, TypeError, KeyError, AttributeError) as e:
         raise ValueError(f"{path}: the saved weights do not fit the network: {e}") from None
+
+
+def load_weights(module: Any, state: Any, path: str | Path) -> None:
+    """`module.load_state_dict(state)` within `weights_of(path)`."""
+    with weights_of(path):
+        module.load_state_dict(state)
 
 
 def _from_v0(saved: dict[str, Any], group: str, path: Path) -> dict[str, Any]:

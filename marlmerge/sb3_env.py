@@ -23,9 +23,10 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.gym_env import HighwayPolicy, _check_action, _EgoWorlds, _infos, _spaces
+from marlmerge.gym_env import HighwayPolicy, _EgoWorlds, _infos, _spaces
 from marlmerge.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.spec.action import as_actions
 
 
 class MergeVecEnv(VecEnv):
@@ -58,7 +59,7 @@ class MergeVecEnv(VecEnv):
         return self._worlds.observe()
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = _check_action(actions, (self.num_envs, 1))
+        self._actions = as_actions(actions, (self.num_envs, 1))
 
     def step_wait(self):
         if self._worlds is None:

@@ -52,6 +52,7 @@ from marlmerge.learners.quadq import (
     notice_if_slow,
     unpack_rows,
 )
+from marlmerge.policy_file import ALGORITHMS as POLICY_ALGORITHMS
 from marlmerge.policy_file import load_weights, read_policy
 from marlmerge.spec.observation import EGO_FEATURES
 
@@ -75,7 +76,7 @@ __all__ = [
     "seeded_init",
 ]
 
-ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
+ALGORITHMS: tuple[str, ...] = POLICY_ALGORITHMS["ego"]
 """Learners selectable with ``TrainConfig.algorithm``."""
 
 OBS_DIM = len(EGO_FEATURES)

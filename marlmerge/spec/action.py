@@ -30,6 +30,6 @@ def as_actions(
     a = a.reshape(shape[0])
     bad = ~np.isfinite(a)
     if bad.any():
-        where = f" (world {int(np.argmax(bad))})" if a.size > 1 else ""
-        raise ValueError(f"{who} must be finite, got {a[bad][0]}{where}")
+        where = f" of world {int(np.argmax(bad))}" if a.size > 1 else ""
+        raise ValueError(f"{who}{where} must be finite, got {a[bad][0]}")
     return a

@@ -72,7 +72,7 @@ def load_preset(cls: type[C], path: str | Path, **overrides: Any) -> C:
     del data["kind"]
     data.setdefault("name", path.stem)
     try:
-        preset = from_dict(cls, with_overrides(dict(data), {}))
+        preset = from_dict(cls, with_overrides(data, {}))
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None
     if not overrides:
