@@ -41,8 +41,8 @@ import numpy as np
 
 import marlmerge
 from marlmerge.config import ScenarioConfig
-from marlmerge.pettingzoo_env import EGO_AGENT
 from marlmerge.sim import OUTCOME_NONE, TrafficCore
+from marlmerge.views.pettingzoo_env import EGO_AGENT
 
 Measure = Callable[[float], dict[str, float]]
 
@@ -113,7 +113,7 @@ def core(batch: int, k: int | None, flow: float | None = None, seed: int = 0) ->
 def torchrl_env(worlds: int, seed: int = 0) -> Measure:
     import torch
 
-    from marlmerge.batched_env import BatchedMergeEnv
+    from marlmerge.views.torchrl_env import BatchedMergeEnv
 
     env = BatchedMergeEnv(num_worlds=worlds, seed=seed)
     gen = torch.Generator().manual_seed(seed)

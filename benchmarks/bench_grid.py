@@ -21,7 +21,7 @@ import statistics
 import tempfile
 import time
 
-from marlmerge.grid import parse_policy, run_grid
+from marlmerge.evaluation.grid import parse_policy, run_grid
 
 POLICIES = ("hold", "idm", "gap")
 CONDITIONS = (
@@ -37,8 +37,8 @@ def learned_run(folder: str) -> str:
     import torch
 
     from marlmerge.config import ScenarioConfig
-    from marlmerge.spec.observation import EGO_FEATURES
-    from marlmerge.train import TrainConfig, make_learner, save_policy
+    from marlmerge.sim.observation import EGO_FEATURES
+    from marlmerge.training.train import TrainConfig, make_learner, save_policy
 
     cfg, scen = TrainConfig(update_path="fast"), ScenarioConfig()
     learner = make_learner(cfg, scen, torch.Generator().manual_seed(0), len(EGO_FEATURES))

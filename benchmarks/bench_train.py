@@ -18,7 +18,7 @@ import tempfile
 import time
 
 from marlmerge.cli import _parse_sets
-from marlmerge.train import load_train_config, train
+from marlmerge.training.train import load_train_config, train
 
 
 def main() -> None:

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 import marlmerge
-from marlmerge.pettingzoo_env import EGO_AGENT, reward_terms
-from marlmerge.render import save_png
 from marlmerge.sim import OUTCOME_NAMES
-from marlmerge.spec.observation import SPEED_SCALE_MPS
+from marlmerge.sim.observation import SPEED_SCALE_MPS
+from marlmerge.views.pettingzoo_env import EGO_AGENT, reward_terms
+from marlmerge.views.render import save_png
 
 
 def ego_action(obs: np.ndarray, speed_limit_mps: float) -> np.ndarray:

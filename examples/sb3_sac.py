@@ -22,9 +22,9 @@ import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.callbacks import BaseCallback
 
-from marlmerge.evaluate import evaluate_policy
-from marlmerge.pettingzoo_env import resolve_config
-from marlmerge.sb3_env import MergeVecEnv
+from marlmerge.evaluation.rollout import evaluate_policy
+from marlmerge.views.pettingzoo_env import resolve_config
+from marlmerge.views.sb3_env import MergeVecEnv
 
 
 def greedy(model: SAC):

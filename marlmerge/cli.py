@@ -9,108 +9,38 @@ import argparse
 import json
 import os
 import sys
-import time
-from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-EGO_RULES = ("hold", "idm", "random")
-
-
-def _ego_rule(rule: str, cfg, rng: np.random.Generator):
-    """An ego policy: observation [7] -> action [1]."""
-    from marlmerge.policies import IdmEgoPolicy, constant_speed_action
-
-    if rule == "hold":
-        return constant_speed_action
-    if rule == "idm":
-        return IdmEgoPolicy(cfg)
-    lo, hi = cfg.ego.accel_bounds_mps2
-    return lambda obs: rng.uniform(lo, hi, size=1).astype(np.float32)
-
 
 def simulate(args: argparse.Namespace) -> int:
     """Drive ramp vehicles through scripted traffic, print what happened, save a frame."""
-    from marlmerge.pettingzoo_env import EGO_AGENT, parallel_env, reward_terms
-    from marlmerge.render import render_frame, save_png
-    from marlmerge.sim import EGO, OUTCOME_NAMES, OUTCOME_NONE
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.simulate import SHOWN_TERMS, simulate
 
-    env = parallel_env(args.scenario, render_mode="rgb_array", control="ego")
-    cfg = env.cfg
-    rng = np.random.default_rng(args.seed)
-    policy = _ego_rule(args.ego, cfg, rng)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    cfg = resolve_config(args.scenario)
     print(
         f"scenario {cfg.name!r}: {cfg.traffic.flow_vph_per_lane:.0f} veh/h/lane, drivers "
         f"coop/neutral/adv = {cfg.driver.mix_cooperative:.2f}/{cfg.driver.mix_neutral:.2f}/"
         f"{cfg.driver.mix_adversarial:.2f}, ego rule {args.ego!r}, seed {args.seed}"
     )
-    print(
-        f"{'ep':>3} {'outcome':>10} {'time_s':>7} {'reward':>8}  "
-        + " ".join(
-            f"{k:>12}" for k in ("acceleration", "gap_front", "gap_back", "speed", "collision")
-        )
-    )
-    obs, _ = env.reset(seed=args.seed)
-    outcomes: Counter[str] = Counter()
-    frame_saved = None
-    records = []
-    t0 = time.perf_counter()
-    steps = 0
-    for ep in range(args.episodes):
-        totals: Counter[str] = Counter()
-        while env.agents:
-            obs, _, _, _, info = env.step({EGO_AGENT: policy(obs[EGO_AGENT])})
-            steps += 1
-            totals.update(reward_terms(info[EGO_AGENT]))
-            x_ego = env.core.state.x_m[0, EGO]
-            if frame_saved is None and x_ego >= cfg.x_overlap_m - 10.0:
-                frame_saved = out / "frame.png"
-                save_png(frame_saved, render_frame(env.core, agent_slots=env.agent_slots))
-        ego = info[EGO_AGENT]
-        outcome = OUTCOME_NAMES[ego["outcome"]]
-        outcomes[outcome] += 1
-        total = sum(totals.values())
-        records.append(
-            {
-                "episode": ep,
-                "outcome": outcome,
-                "time_s": ego["ego_time_s"],
-                "reward": total,
-                **dict(totals),
-            }
-        )
+    print(f"{'ep':>3} {'outcome':>10} {'time_s':>7} {'reward':>8}  ", end="")
+    print(" ".join(f"{k:>12}" for k in SHOWN_TERMS))
+
+    def row(r: dict[str, Any]) -> None:
+        terms = " ".join(f"{r.get(k, 0.0):>12.2f}" for k in SHOWN_TERMS)
         print(
-            f"{ep:>3} {outcome:>10} {ego['ego_time_s']:>7.1f} {total:>8.2f}  "
-            + " ".join(
-                f"{totals[k]:>12.2f}"
-                for k in ("acceleration", "gap_front", "gap_back", "speed", "collision")
-            )
+            f"{r['episode']:>3} {r['outcome']:>10} {r['time_s']:>7.1f} {r['reward']:>8.2f}  {terms}"
         )
-        obs, _ = env.reset()
-        assert env.core.state.ego_outcome[0] == OUTCOME_NONE
-    wall = time.perf_counter() - t0
-    n = args.episodes
-    summary = {
-        "episodes": n,
-        **{f"{k}_rate": outcomes[k] / n for k in ("success", "collision", "truncated")},
-        "env_steps": steps,
-        "env_steps_per_s": steps / wall,
-    }
-    print(
-        "summary: "
-        + ", ".join(
-            f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()
-        )
+
+    out = Path(args.out)
+    result = simulate(cfg, args.ego, args.episodes, args.seed, out, on_episode=row)
+    shown = (
+        f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in result.summary.items()
     )
-    (out / "episodes.json").write_text(
-        json.dumps({"summary": summary, "episodes": records}, indent=1)
-    )
-    print(f"wrote {out / 'episodes.json'}" + (f" and {frame_saved}" if frame_saved else ""))
+    print("summary: " + ", ".join(shown))
+    print(f"wrote {out / 'episodes.json'}" + (f" and {result.frame}" if result.frame else ""))
     return 0
 
 
@@ -133,8 +63,8 @@ def _parse_sets(items: list[str]) -> dict:
 def _run_config(cls: type, out: Path, cfg: Any, sets: dict[str, Any], resume: bool) -> Any:
     """The config a run in `out` trains with: `cfg` for a new run, the checkpoint's when
     resuming (a `--set` that differs from it is an error naming the key)."""
-    from marlmerge.presets import run_scenario
-    from marlmerge.training.presets import resume_config
+    from marlmerge.config.presets import run_scenario
+    from marlmerge.training.checkpoint import resume_config
 
     run_scenario(cfg)
     has_run = (out / "checkpoint.pt").exists()
@@ -150,14 +80,14 @@ def _run_config(cls: type, out: Path, cfg: Any, sets: dict[str, Any], resume: bo
 
 def train_cmd(args: argparse.Namespace) -> int:
     """Train the ego with the quadratic-Q learner; evaluate and plot at the end."""
-    from marlmerge.train import TrainConfig, load_train_config, train
+    from marlmerge.training.train import TrainConfig, load_train_config, train
 
     sets = _parse_sets(args.set)
     if args.preset:
         cfg = load_train_config(args.preset, **sets)
     else:
         from marlmerge.config import from_dict, to_dict
-        from marlmerge.training.presets import with_overrides
+        from marlmerge.config.presets import with_overrides
 
         cfg = from_dict(TrainConfig, with_overrides(to_dict(TrainConfig()), sets))
     out = Path(args.out or f"runs/{cfg.name}")
@@ -185,7 +115,7 @@ def train_cmd(args: argparse.Namespace) -> int:
 
 def cotrain_cmd(args: argparse.Namespace) -> int:
     """Co-train learned highway agents and the ego (alternating phases)."""
-    from marlmerge.cotrain import CoTrainConfig, cotrain, load_cotrain_config
+    from marlmerge.training.cotrain import CoTrainConfig, cotrain, load_cotrain_config
 
     sets = _parse_sets(args.set)
     cfg = load_cotrain_config(args.preset, **sets)
@@ -235,14 +165,14 @@ def _print_evaluation(ev: dict) -> None:
 
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
-    from marlmerge.presets import resolve_config
+    from marlmerge.config.presets import resolve_config
 
     scen = None
     if args.scenario:  # checked before torch and the policy are loaded
         scen = resolve_config(args.scenario)
-    from marlmerge.evaluate import evaluate_policy
-    from marlmerge.learners.baselines_rl import load_scenario_of
-    from marlmerge.registry import RULE_POLICIES, policy_from_spec
+    from marlmerge.evaluation.registry import RULE_POLICIES, policy_from_spec
+    from marlmerge.evaluation.rollout import evaluate_policy
+    from marlmerge.learners.loading import load_scenario_of
 
     if scen is None:
         rule = args.policy in RULE_POLICIES
@@ -250,7 +180,7 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     policy = policy_from_spec(args.policy, scen)
     highway = None
     if args.highway:
-        from marlmerge.learned_highway import load_highway_policy
+        from marlmerge.learners.highway import load_highway_policy
 
         highway = load_highway_policy(args.highway)
     ev = evaluate_policy(policy, scen, args.episodes, args.seed, args.worlds, highway)
@@ -261,7 +191,12 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
 
 def grid_cmd(args: argparse.Namespace) -> int:
     """Evaluate policies across traffic conditions: CSV, Markdown summary, heat maps."""
-    from marlmerge.grid import default_conditions, expand_conditions, parse_policy, run_grid
+    from marlmerge.evaluation.grid import (
+        default_conditions,
+        expand_conditions,
+        parse_policy,
+        run_grid,
+    )
 
     policies = [parse_policy(p) for p in (args.policy or ["hold", "idm", "gap"])]
     conditions = expand_conditions(args.condition) if args.condition else default_conditions()
@@ -292,7 +227,7 @@ def grid_cmd(args: argparse.Namespace) -> int:
 
 def plot_cmd(args: argparse.Namespace) -> int:
     """Regenerate the paper's figures from a run's logs."""
-    from marlmerge.plots import plot_run
+    from marlmerge.training.plots import plot_run
 
     for p in plot_run(args.run):
         print(f"wrote {p}")
@@ -301,7 +236,7 @@ def plot_cmd(args: argparse.Namespace) -> int:
 
 def sweep_cmd(args: argparse.Namespace) -> int:
     """Train a preset over many seeds on a backend and summarise across seeds."""
-    from marlmerge.sweep import parse_seeds, sweep
+    from marlmerge.training.sweep import parse_seeds, sweep
 
     seeds = parse_seeds(args.seeds)
     out = Path(args.out or f"runs/sweep_{Path(args.preset).stem}")
@@ -322,8 +257,8 @@ def sweep_cmd(args: argparse.Namespace) -> int:
 
 def render_cmd(args: argparse.Namespace) -> int:
     """Record greedy episodes of a policy as a video at the simulation rate."""
-    from marlmerge.presets import resolve_config
-    from marlmerge.video import render_episodes
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.video import render_episodes
 
     cfg = resolve_config(args.scenario)
     path, n, outcomes = render_episodes(
@@ -335,7 +270,7 @@ def render_cmd(args: argparse.Namespace) -> int:
 
 def validate_cmd(args: argparse.Namespace) -> int:
     """Run the validation scenarios in marlmerge and SUMO and write the report."""
-    from marlmerge.presets import resolve_config
+    from marlmerge.config.presets import resolve_config
     from marlmerge.validation import sumo
     from marlmerge.validation.report import validate
 
@@ -359,7 +294,7 @@ def validate_cmd(args: argparse.Namespace) -> int:
 
 
 def _backend_args(p: argparse.ArgumentParser) -> None:
-    from marlmerge.backends import BACKENDS
+    from marlmerge.evaluation.backends import BACKENDS
 
     p.add_argument(
         "--backend",
@@ -476,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=_at_least(0), default=0)
     s.add_argument(
         "--ego",
-        choices=EGO_RULES,
+        choices=("hold", "idm", "random"),
         default="hold",
         help="hold: keep speed; idm: plain car following that ignores the merge; "
         "random: uniform accelerations",

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from marlmerge.baselines import GapAcceptancePolicy, GapShield, IdmEgoPolicy
 from marlmerge.config import ScenarioConfig
+from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, GapShield, IdmEgoPolicy
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.spec.observation import EGO_SCALE
+from marlmerge.sim.observation import EGO_SCALE
 
 COOPERATIVE_LIGHT = {
     "traffic.flow_vph_per_lane": 600.0,

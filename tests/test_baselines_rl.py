@@ -6,16 +6,14 @@ import json
 import pytest
 import torch
 
-from marlmerge import files
-from marlmerge.learners.baselines_rl import (
-    DQNLearner,
-    EpsilonGreedy,
-    TD3Learner,
-    dqn_action_levels,
-    load_policy,
-)
+from marlmerge.config.presets import load_train_config
+from marlmerge.config.training import Td3Config, TrainConfig
+from marlmerge.io import files
+from marlmerge.learners.dqn import DQNLearner, EpsilonGreedy, dqn_action_levels
+from marlmerge.learners.loading import load_policy
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
-from marlmerge.train import Td3Config, TrainConfig, load_train_config, train
+from marlmerge.learners.td3 import TD3Learner
+from marlmerge.training.train import train
 
 LO, HI = -4.5, 2.5
 

@@ -5,8 +5,8 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from marlmerge.batched_env import BatchedMergeEnv
-from marlmerge.spec.reward import EGO_TERMS
+from marlmerge.sim.reward import EGO_TERMS
+from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 
 def _hold(td):

@@ -8,10 +8,15 @@ import pytest
 import torch
 
 import marlmerge
-from marlmerge import files
 from marlmerge.cli import main
-from marlmerge.cotrain import CoTrainConfig, cotrain, load_cotrain_config, load_highway_policy
-from marlmerge.learners.baselines_rl import load_policy
+from marlmerge.io import files
+from marlmerge.learners.loading import load_policy
+from marlmerge.training.cotrain import (
+    CoTrainConfig,
+    cotrain,
+    load_cotrain_config,
+    load_highway_policy,
+)
 
 TINY = dict(
     ego_pretrain_sim_steps=4_096,

@@ -5,10 +5,10 @@ import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 import marlmerge
-from marlmerge.pettingzoo_env import EGO_AGENT, reward_terms
 from marlmerge.sim import OUTCOME_NAMES
-from marlmerge.spec.observation import EGO_FEATURES, HIGHWAY_FEATURES
-from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.sim.observation import EGO_FEATURES, HIGHWAY_FEATURES
+from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.views.pettingzoo_env import EGO_AGENT, reward_terms
 
 
 def test_parallel_api_test():

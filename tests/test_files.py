@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from marlmerge import files
 from marlmerge.cli import main
-from marlmerge.learners.baselines_rl import load_policy
+from marlmerge.io import files
+from marlmerge.learners.loading import load_policy
 
 RAN = []
 

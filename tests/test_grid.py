@@ -5,8 +5,8 @@ import csv
 import pytest
 
 from marlmerge.cli import main
-from marlmerge.grid import default_conditions, expand_conditions, parse_policy, run_grid
-from marlmerge.train import TrainConfig, train
+from marlmerge.evaluation.grid import default_conditions, expand_conditions, parse_policy, run_grid
+from marlmerge.training.train import TrainConfig, train
 
 CONDITIONS = ["grid_light_cooperative", "grid_dense_adversarial"]
 
@@ -55,8 +55,8 @@ def test_every_policy_meets_the_same_episodes():
     import numpy as np
     import torch
 
-    from marlmerge.evaluate import rollout_first_egos
-    from marlmerge.presets import resolve_config
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.rollout import rollout_first_egos
 
     scen = resolve_config(CONDITIONS[0])
 
@@ -113,10 +113,10 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
     import torch
 
     from marlmerge.config import ScenarioConfig
-    from marlmerge.cotrain import CoTrainConfig, load_highway_policy, save_highway_policy
-    from marlmerge.grid import parse_condition
+    from marlmerge.evaluation.grid import parse_condition
     from marlmerge.learners.quadq import QuadraticQNet
-    from marlmerge.spec.observation import HIGHWAY_FEATURES
+    from marlmerge.sim.observation import HIGHWAY_FEATURES
+    from marlmerge.training.cotrain import CoTrainConfig, load_highway_policy, save_highway_policy
 
     # a highway policy that brakes at every step: greedy B(s) pinned to the lower bound
     net = QuadraticQNet(12, 64, action_low=-4.5, action_high=2.5)
@@ -162,8 +162,8 @@ def test_learned_highway_agents_join_the_grid_as_a_condition(tmp_path):
 
 @pytest.mark.slow
 def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(tmp_path):
-    from marlmerge.presets import resolve_config
-    from marlmerge.registry import scenario_for
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.registry import scenario_for
 
     extended = tmp_path / "extended.toml"
     extended.write_text('name = "extended"\n[ego]\nobservation = "extended"\n')
@@ -197,7 +197,7 @@ def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(t
 
 
 def test_a_sensing_condition_keeps_the_roads_and_changes_the_sensor():
-    from marlmerge.grid import parse_condition
+    from marlmerge.evaluation.grid import parse_condition
 
     specs = expand_conditions(["grid_dense_*+sensing:sensing_realistic"])
     assert len(specs) == 4 and all(s.endswith("+sensing:sensing_realistic") for s in specs)

@@ -11,9 +11,9 @@ from pettingzoo.test import api_test, max_cycles_test, render_test, seed_test
 
 import marlmerge
 from marlmerge.config import ScenarioConfig
-from marlmerge.policies import ScriptedHighwayPolicy
-from marlmerge.registry import policy_from_spec
-from marlmerge.video import record_episodes
+from marlmerge.evaluation.registry import policy_from_spec
+from marlmerge.evaluation.video import record_episodes
+from marlmerge.policies.scripted import ScriptedHighwayPolicy
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # "human" windows without a display
 
@@ -98,7 +98,7 @@ def test_record_video_wrapper_writes_a_video(tmp_path):
 def test_episode_video_has_one_frame_per_simulator_step(tmp_path):
     import imageio.v2 as imageio
 
-    from marlmerge.render import write_video
+    from marlmerge.views.render import write_video
 
     cfg = ScenarioConfig()
     frames, outcomes = record_episodes(policy_from_spec("hold", cfg), cfg, episodes=1, seed=5)

@@ -5,8 +5,8 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from marlmerge.batched_env import BatchedMergeEnv
-from marlmerge.marl_env import GROUP, MultiAgentMergeEnv
+from marlmerge.views.torchrl_env import BatchedMergeEnv
+from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
 
 
 def _const_policy(ego_a, hw_a):

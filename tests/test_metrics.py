@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.metrics import (
+from marlmerge.evaluation.metrics import (
     METRICS,
     EpisodeTrajectory,
     TrajectoryRecorder,

@@ -9,11 +9,8 @@ from scenes import scene
 from torchrl.envs.utils import check_env_specs
 
 import marlmerge
-from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import ScenarioConfig
-from marlmerge.marl_env import MultiAgentMergeEnv
-from marlmerge.pettingzoo_env import EGO_AGENT
-from marlmerge.spec.observation import (
+from marlmerge.sim.observation import (
     EGO_EXTENDED_ACCEL_FEATURES,
     EGO_EXTENDED_FEATURES,
     EGO_FEATURES,
@@ -22,6 +19,9 @@ from marlmerge.spec.observation import (
     ego_obs_size,
     feature_index,
 )
+from marlmerge.views.pettingzoo_env import EGO_AGENT
+from marlmerge.views.torchrl_env import BatchedMergeEnv
+from marlmerge.views.torchrl_groups import MultiAgentMergeEnv
 
 EXTENDED = {"ego.observation": "extended"}
 CFG = ScenarioConfig()
@@ -163,7 +163,7 @@ def test_gymnasium_views_are_sized_from_the_layout():
 
 
 def test_rule_policies_read_the_papers_features_of_any_layout():
-    from marlmerge.baselines import GapAcceptancePolicy, IdmEgoPolicy
+    from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, IdmEgoPolicy
 
     core = scene(ego=(-60.0, 20.0), right=[(-57.0, 25.0)], overrides=EXTENDED)
     extended = core.observe()[0]

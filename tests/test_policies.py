@@ -3,10 +3,10 @@
 import numpy as np
 
 import marlmerge
-from marlmerge.pettingzoo_env import EGO_AGENT
-from marlmerge.policies import IdmEgoPolicy, ScriptedHighwayPolicy
+from marlmerge.policies.scripted import IdmEgoPolicy, ScriptedHighwayPolicy
 from marlmerge.sim import OUTCOME_NONE
-from marlmerge.spec.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE
+from marlmerge.sim.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE
+from marlmerge.views.pettingzoo_env import EGO_AGENT
 
 
 def _highway_obs(**raw):

@@ -3,13 +3,13 @@
 import pytest
 import torch
 
-from marlmerge import files
 from marlmerge.config import ScenarioConfig, to_dict
-from marlmerge.learners.baselines_rl import load_policy
+from marlmerge.evaluation.registry import parse_policy
+from marlmerge.io import files
+from marlmerge.io.policy_file import VERSION, read_policy, write_policy
+from marlmerge.learners.loading import load_policy
 from marlmerge.learners.quadq import QuadraticQNet
-from marlmerge.policy_file import VERSION, read_policy, write_policy
-from marlmerge.registry import parse_policy
-from marlmerge.spec.observation import EGO_FEATURES
+from marlmerge.sim.observation import EGO_FEATURES
 
 SCEN = to_dict(ScenarioConfig())
 

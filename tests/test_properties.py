@@ -11,12 +11,13 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from marlmerge import RampMergeEnv, files, parallel_env
+from marlmerge import RampMergeEnv, parallel_env
 from marlmerge.config import ScenarioConfig, bounds_table, field_bounds, to_dict
+from marlmerge.config.training import TrainConfig
+from marlmerge.io import files
+from marlmerge.io.policy_file import TOP_KEYS, write_policy
 from marlmerge.learners.quadq import QuadraticQNet
-from marlmerge.policy_file import TOP_KEYS, write_policy
 from marlmerge.sim import TrafficCore
-from marlmerge.training.config import TrainConfig
 
 FIXED = settings(
     derandomize=True,  # the same examples on every run
@@ -91,7 +92,7 @@ def test_scenario_overrides_give_a_valid_config_or_an_error_naming_the_key(chang
 @FIXED
 @given(overrides(TRAIN_KEYS, TRAIN_DEFAULTS))
 def test_training_overrides_give_a_valid_config_or_an_error_naming_the_key(changes):
-    from marlmerge.train import load_train_config
+    from marlmerge.training.train import load_train_config
 
     try:
         cfg = load_train_config("quick", **changes)
@@ -209,7 +210,7 @@ VALUE = st.one_of(
 def test_a_mangled_policy_file_loads_or_names_the_file(
     valid_policy, tmp_path_factory, dropped, replaced, damage
 ):
-    from marlmerge.learners.baselines_rl import load_policy
+    from marlmerge.learners.loading import load_policy
 
     saved = {k: v for k, v in valid_policy.items() if k not in dropped} | replaced
     path: Path = tmp_path_factory.mktemp("mangled") / "p.pt"

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from marlmerge import RampMergeEnv, files, parallel_env
+from marlmerge import RampMergeEnv, parallel_env
 from marlmerge.config import ScenarioConfig, bounds_table, to_dict
+from marlmerge.io import files
+from marlmerge.io.policy_file import read_policy, write_policy
 from marlmerge.learners.quadq import QuadraticQNet
-from marlmerge.policy_file import read_policy, write_policy
 from marlmerge.sim import TrafficCore
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -113,7 +114,7 @@ def test_a_policy_file_with_unusable_contents_names_the_file(tmp_path, change, m
 
 
 def test_weights_that_do_not_fit_the_network_name_the_file(tmp_path):
-    from marlmerge.learners.baselines_rl import load_policy
+    from marlmerge.learners.loading import load_policy
 
     saved = files.load(_policy(tmp_path))
     saved["policy_state"]["hidden"] = 16  # the saved weights are 8 wide
@@ -176,7 +177,7 @@ def test_implausible_magnitudes_are_refused_naming_the_key_and_the_value(key, va
 
 def test_every_default_and_every_preset_lies_within_the_declared_bounds():
     from marlmerge.config import load_scenario
-    from marlmerge.presets import preset_dir
+    from marlmerge.config.presets import preset_dir
 
     for key, _default, rule in bounds_table(ScenarioConfig):
         assert rule, key  # every number of the scenario has bounds
@@ -210,7 +211,7 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_a_bad_set_value_is_reported_against_the_set_not_the_preset():
-    from marlmerge.train import load_train_config
+    from marlmerge.training.train import load_train_config
 
     with pytest.raises(ValueError, match=r"^--set lr=-1\.0 \(on quick\.toml\): lr must be"):
         load_train_config("quick", lr=-1.0)
@@ -224,7 +225,7 @@ def test_an_unknown_scenario_is_refused_before_the_banner_and_before_any_file(tm
 
 
 def test_an_unknown_scenario_in_the_python_api_writes_nothing(tmp_path):
-    from marlmerge.train import TrainConfig, train
+    from marlmerge.training.train import TrainConfig, train
 
     with pytest.raises(ValueError, match="scenario = 'nope'"):
         train(TrainConfig(scenario="nope"), tmp_path / "run")

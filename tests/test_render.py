@@ -1,4 +1,4 @@
-"""Top-down frames (`marlmerge.render`): shape, ego placement, clipping, and the PNG writer."""
+"""Top-down frames (`marlmerge.views.render`): shape, ego placement, clipping, the PNG writer."""
 
 import math
 import struct
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.render import (
+from marlmerge.sim import EGO, RIGHT, TrafficCore
+from marlmerge.views.render import (
     EGO_COLOUR,
     LATERAL_MARGIN_M,
     default_x_range,
@@ -16,7 +17,6 @@ from marlmerge.render import (
     render_frame,
     save_png,
 )
-from marlmerge.sim import EGO, RIGHT, TrafficCore
 
 PX_PER_M = 4.0
 

@@ -5,7 +5,7 @@ import math
 import pytest
 
 from marlmerge.config import InteractionConfig, ScenarioConfig
-from marlmerge.spec.reward import (
+from marlmerge.sim.reward import (
     INTERACTION_TERMS,
     ego_step_terms,
     highway_step_terms,
@@ -172,7 +172,7 @@ def test_jerk_term_charges_each_change_of_the_applied_acceleration_once():
 def test_the_total_reward_is_bit_for_bit_the_sum_of_the_papers_terms():
     import numpy as np
 
-    from marlmerge.spec.reward import total_reward
+    from marlmerge.sim.reward import total_reward
 
     rng = np.random.default_rng(0)
     terms = -rng.exponential(size=(1000, 7)) * rng.integers(0, 2, size=(1000, 7))

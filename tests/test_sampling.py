@@ -5,13 +5,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from marlmerge.batched_env import BatchedMergeEnv
 from marlmerge.config import MPH_TO_MPS, ScenarioConfig
-from marlmerge.presets import resolve_config
+from marlmerge.config.presets import resolve_config
 from marlmerge.sim import EGO, TrafficCore
 from marlmerge.sim import layout as L
+from marlmerge.sim.observation import SPEED_SCALE_MPS
 from marlmerge.sim.streams import world_seed_sequences
-from marlmerge.spec.observation import SPEED_SCALE_MPS
+from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 RANGES = {
     "sample.flow_vph_per_lane": [400.0, 1800.0],

@@ -6,8 +6,8 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import marlmerge
-from marlmerge.evaluate import evaluate_policy
-from marlmerge.sb3_env import MergeVecEnv
+from marlmerge.evaluation.rollout import evaluate_policy
+from marlmerge.views.sb3_env import MergeVecEnv
 
 
 def test_single_env_passes_sb3_check_env():

@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from marlmerge.grid import parse_policy, run_grid
-from marlmerge.sweep import parse_seeds, sweep
+from marlmerge.evaluation.grid import parse_policy, run_grid
+from marlmerge.training.sweep import parse_seeds, sweep
 
 POLICIES = ["hold", "gap"]
 CONDITIONS = ["grid_light_cooperative", "grid_dense_adversarial"]
@@ -51,7 +51,7 @@ def serial_csv(tmp_path_factory):
 def test_process_backend_gives_the_serial_csv_byte_for_byte(
     tmp_path, serial_csv, method, monkeypatch
 ):
-    import marlmerge.backends as backends
+    import marlmerge.evaluation.backends as backends
 
     monkeypatch.setattr(backends, "start_method", lambda: method)  # forked or spawned workers
     res = _grid(tmp_path, "process", workers=2)
@@ -65,7 +65,7 @@ def test_workers_are_forked_only_before_a_parallel_kernel_ran(tmp_path):
     import sys
 
     code = (
-        "import numpy as np; from marlmerge.backends import start_method; "
+        "import numpy as np; from marlmerge.evaluation.backends import start_method; "
         "from marlmerge import ScenarioConfig, TrafficCore; a = start_method(); "
         "c = TrafficCore(ScenarioConfig(), batch_size=128, seed=0); c.rollout(np.zeros(128)); "
         "print(a, start_method())"

@@ -8,10 +8,10 @@ import pytest
 from scenes import same_with_and_without_jit, scene
 
 from marlmerge.config import ScenarioConfig, load_scenario
-from marlmerge.presets import find_preset
+from marlmerge.config.presets import find_preset
 from marlmerge.sim import TrafficCore
 from marlmerge.sim import layout as L
-from marlmerge.spec.observation import EGO_EXTENDED_FEATURES
+from marlmerge.sim.observation import EGO_EXTENDED_FEATURES
 
 CFG = ScenarioConfig().replace(**{"ego.observation": "extended"})
 POS_STD_M, SPEED_STD_MPS = 0.8, 0.4

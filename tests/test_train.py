@@ -6,9 +6,9 @@ import json
 import pytest
 import torch
 
-from marlmerge import files
 from marlmerge.cli import main
-from marlmerge.train import TrainConfig, load_train_config, train
+from marlmerge.io import files
+from marlmerge.training.train import TrainConfig, load_train_config, train
 
 TINY = dict(
     name="tiny",
@@ -195,7 +195,7 @@ class _Board:
 
 @pytest.mark.slow
 def test_tensorboard_gets_each_loss_and_each_ego_once(tmp_path, monkeypatch):
-    import marlmerge.train as training
+    import marlmerge.training.train as training
 
     board = _Board()
     monkeypatch.setattr(training, "tensorboard", lambda out: board)
@@ -234,8 +234,8 @@ def test_the_paper_learner_learns_to_beat_holding_its_speed(tmp_path):
     held-out roads (seed 0 measured 93 % vs 84 %)."""
     import torch
 
-    from marlmerge.evaluate import evaluate_policy
-    from marlmerge.presets import resolve_config
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.rollout import evaluate_policy
 
     cfg = TrainConfig(
         name="learn",

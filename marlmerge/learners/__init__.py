@@ -1,14 +1,14 @@
-"""Learners built on torchrl: the quadratic-in-action Q-function of Wang & Chan, and its peers
-(DQN over discrete accelerations, TD3) in `baselines_rl`."""
+"""Learners built on torchrl, all behind the one protocol of `base.Learner`:
 
-from marlmerge.learners.baselines_rl import (
-    ALGORITHMS,
-    DQNLearner,
-    TD3Learner,
-    dqn_action_levels,
-    load_policy,
-    make_learner,
-)
+- `quadq` (the paper's quadratic-in-action Q-function, its loss and fused update path) and
+  `quadq_learner` (the protocol over it);
+- `dqn` and `td3`, its peers over torchrl losses, sharing `common`;
+- `highway`, the learned highway driver (a residual on the scripted profile);
+- `loading`: `make_learner` by algorithm name and the one `load_policy` of a saved ego.
+"""
+
+from marlmerge.learners.dqn import DQNLearner, dqn_action_levels
+from marlmerge.learners.loading import ALGORITHMS, load_policy, make_learner
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
     FastQuadQUpdater,
@@ -19,6 +19,7 @@ from marlmerge.learners.quadq import (
     TransitionReplay,
     noisy_greedy_action,
 )
+from marlmerge.learners.td3 import TD3Learner
 
 __all__ = [
     "DEFAULT_ACTION_BOUNDS",
@@ -29,7 +30,6 @@ __all__ = [
     "QuadraticQNet",
     "TransitionReplay",
     "noisy_greedy_action",
-    # peers of the quadratic-Q learner (baselines_rl)
     "ALGORITHMS",
     "DQNLearner",
     "TD3Learner",

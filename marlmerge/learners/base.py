@@ -1,7 +1,7 @@
 """The one learner protocol every ego learner implements (quadq, DQN, TD3).
 
-The training loop (`marlmerge.train`) only ever calls these methods, so it has no branch per
-algorithm: it acts with `act`, stores `replay_action`, learns with `learn`, checkpoints with
+The training loop (`marlmerge.training.train`) only ever calls these methods, so it has no branch
+per algorithm: it acts with `act`, stores `replay_action`, learns with `learn`, checkpoints with
 `state_dict` / `load_state_dict` and saves `policy_state` in the policy file.
 """
 

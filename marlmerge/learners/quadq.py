@@ -43,6 +43,8 @@ from tensordict.utils import NestedKey, unravel_key
 from torch import Tensor, nn
 from torchrl.objectives import HardUpdate, LossModule
 
+from marlmerge.config.training import PAPER_GAMMA
+
 __all__ = [
     "DEFAULT_ACTION_BOUNDS",
     "FastQuadQUpdater",
@@ -55,8 +57,6 @@ __all__ = [
     "unpack_rows",
 ]
 
-PAPER_GAMMA = 0.95
-"""The discount factor of the paper's recipe (Sec. IV.B): every default discount."""
 DEFAULT_ACTION_BOUNDS: tuple[float, float] = (-4.5, 2.5)
 """Ego acceleration bounds, m/s^2 (``EgoConfig.accel_bounds_mps2``)."""
 

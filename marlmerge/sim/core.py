@@ -25,6 +25,11 @@ from marlmerge.config import ScenarioConfig, from_dict, latency_steps, to_dict
 from marlmerge.sim import kernels
 from marlmerge.sim import layout as L
 from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
+from marlmerge.sim.observation import (
+    HIGHWAY_FEATURES,
+    ego_features,
+)
+from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 from marlmerge.sim.state import EgoGaps, Rollout, Roster, StepEvents, TrafficState
 from marlmerge.sim.streams import (
     CHUNK,
@@ -33,11 +38,6 @@ from marlmerge.sim.streams import (
     draw_world_scenario,
     world_seed_sequences,
 )
-from marlmerge.spec.observation import (
-    HIGHWAY_FEATURES,
-    ego_features,
-)
-from marlmerge.spec.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 
 PARALLEL_MIN_WORLDS = 64
 """From this many worlds on, `rollout` runs worlds in parallel threads (same results)."""

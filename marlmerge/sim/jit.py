@@ -36,7 +36,7 @@ KERNEL_SOURCES = (
     "sim/safety.py",
     "sim/sensing.py",
     "sim/step.py",
-    "spec/reward.py",
+    "sim/reward.py",
 )
 """The files whose compiled functions call one another (relative to the package)."""
 

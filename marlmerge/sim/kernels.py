@@ -2,8 +2,8 @@
 
 `rollout` holds the ego commands for `k` simulator steps (`marlmerge.sim.step.substep`) in every
 world and, after each step, adds up the named reward terms of the ego and of the highway agents
-(`marlmerge.spec.reward`) and records the ego's trace; at the end it writes the observations
-(`marlmerge.spec.observation` order). A world whose ego was running stops stepping within the
+(`marlmerge.sim.reward`) and records the ego's trace; at the end it writes the observations
+(`marlmerge.sim.observation` order). A world whose ego was running stops stepping within the
 call once its ego's episode ends, so one world of a batch and a single world step alike.
 `rollout_parallel` is the same over worlds in parallel threads (worlds are independent).
 With imperfect sensing (`[sensing]`) the ego's sensor measures after every simulator step and
@@ -114,9 +114,9 @@ from marlmerge.sim.layout import (
     WI_STEP_OUTCOME,
     WI_SUBSTEPS,
 )
+from marlmerge.sim.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
 from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, sensed_output
 from marlmerge.sim.step import deactivate, ego_gaps, free_slot, neighbours, substep
-from marlmerge.spec.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
 
 NAN = math.nan
 INF = math.inf

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from marlmerge.config import ScenarioConfig, latency_steps
-from marlmerge.spec.observation import (
+from marlmerge.sim.observation import (
     ACCEL_SCALE_MPS2,
     POSITION_SCALE_M,
     SPEED_SCALE_MPS,
@@ -345,7 +345,7 @@ N_PARAMS = len(_PARAMS)
 
 def pack_params(cfg: ScenarioConfig) -> np.ndarray:
     """The config's numbers in the order of `P`, as the kernels read them (with the scales of
-    the observation tables, `marlmerge.spec.observation`)."""
+    the observation tables, `marlmerge.sim.observation`)."""
     r, d, e, w, i, s = cfg.road, cfg.driver, cfg.ego, cfg.reward, cfg.interaction, cfg.sim
     v_limit = r.speed_limit_mps
     values = {

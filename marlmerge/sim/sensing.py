@@ -1,6 +1,6 @@
 """What the ego observes, compiled: its observation vector, and the imperfect sensor around it.
 
-`ego_observation` writes the ego's features (`marlmerge.spec.observation`, the layout of
+`ego_observation` writes the ego's features (`marlmerge.sim.observation`, the layout of
 `ego.observation`) into one row of an output array. With perfect sensing (the default) the core
 calls it once, after the last simulator step of a call. With `[sensing]` on, the ego's sensor
 measures after every simulator step into a per-world ring (`sense_measure`), each measurement with
@@ -12,7 +12,7 @@ Occlusion (`sensing.occlusion`, extended layout only). Geometry: the right lane'
 y = 0, the left lane's y = lane_width_m; every vehicle is a `length_m` x `width_m` rectangle
 centred on its lane, behind its front bumper x. The ego's centre (x_c = x - length_m / 2) is on
 the ramp's centreline, y = -ramp_offset_m x clip(-x_c / merge_zone_m, 0, 1): the taper over the
-merge zone, as drawn by `marlmerge.render`. Rule: a left-lane vehicle is hidden when the
+merge zone, as drawn by `marlmerge.views.render`. Rule: a left-lane vehicle is hidden when the
 straight line from the ego's centre to that vehicle's centre passes through the body of a
 right-lane vehicle (roughly: at least half of it is hidden). A hidden vehicle is reported as
 missing. Only the left-lane features (`left_front_*`, `left_back_*`) can be affected: the

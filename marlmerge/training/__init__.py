@@ -1,4 +1,5 @@
-"""How a learner is trained: the run config schema (`config`), presets (`presets`), the one loop
-and its factories (`loop`) and what a run writes while it runs (`logs`). The two kinds of run
-built on them are `marlmerge.train` (the ego against scripted traffic) and `marlmerge.cotrain`
-(learned highway agents and the ego, in phases)."""
+"""How a learner is trained: the one loop and its factories (`loop`), what a run writes while it
+runs (`logs`), resuming from a checkpoint (`checkpoint`), the two kinds of run built on them,
+`train` (the ego against scripted traffic) and `cotrain` (learned highway agents and the ego, in
+phases), many seeds at once (`sweep`) and a run's figures (`plots`). The run schemas are in
+`marlmerge.config.training` and `marlmerge.config.cotraining`."""

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from marlmerge import files
+from marlmerge.io import files
 from marlmerge.sim import OUTCOME_NAMES
-from marlmerge.spec.reward import EGO_TERMS, total_reward
+from marlmerge.sim.reward import EGO_TERMS, total_reward
 
 LOSS_FIELDS = ("update", "sim_step", "loss")
 EGO_FIELDS = ("ego", "sim_step", "world", "outcome", "time_s", "total_reward", *EGO_TERMS)

@@ -2,7 +2,8 @@
 
 A run is a collector stepping an env with a policy, and one or more learning groups (a
 `Learner` with its replay and the updates it owes). `run_loop` is the loop every run uses:
-`marlmerge.train` for the ego against scripted traffic, `marlmerge.cotrain` once per phase:
+`marlmerge.training.train` for the ego against scripted traffic, `marlmerge.training.cotrain`
+once per phase:
 
     for batch in collector:                        # [B, T] env steps of B worlds
         on_batch(batch, sim_steps)                 # count the steps, log finished episodes
@@ -29,7 +30,7 @@ from torch import Tensor
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-from marlmerge import files
+from marlmerge.io import files
 from marlmerge.learners.base import Learner
 
 RowsFn = Callable[[TensorDictBase], Tensor]
@@ -204,5 +205,5 @@ def transition_rows(batch: TensorDictBase, action: Tensor | None = None) -> Tens
 
 def save_checkpoint(path: Any, payload: dict[str, Any]) -> None:
     """Write atomically (a run killed while saving keeps its previous checkpoint), as tensors
-    and plain data only (`marlmerge.files`)."""
+    and plain data only (`marlmerge.io.files`)."""
     files.save(payload, path)

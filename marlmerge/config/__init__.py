@@ -1,0 +1,82 @@
+"""The one configuration schema: frozen dataclasses with defaults in code, loaded strictly.
+
+- `scenario`: what a simulated road is (`ScenarioConfig` and its tables) and its cross-field
+  checks; `training` and `cotraining`: what a training run is (`TrainConfig`, `CoTrainConfig`);
+- `rules`: the `Bounds` declared beside every number, checked and listed from one table;
+- `codec`: dicts and TOML to dataclasses and back, dotted keys;
+- `presets`: the one lookup of the presets in `envs/` and `trainers/`, and their loading.
+
+The scenario schema and the codec are re-exported here (`from marlmerge.config import
+ScenarioConfig, load_scenario`).
+"""
+
+from marlmerge.config.codec import from_dict, get_dotted, read_toml, set_dotted, to_dict, tomllib
+from marlmerge.config.rules import (
+    Bounds,
+    bounds_markdown,
+    bounds_table,
+    check_values,
+    field_bounds,
+    num,
+    positive,
+    require,
+)
+from marlmerge.config.scenario import (
+    MAX_HIGHWAY_AGENTS,
+    MAX_LATENCY_S,
+    MAX_WARMUP_S,
+    MAX_WEIGHT,
+    MPH_TO_MPS,
+    OBSERVATION_LAYOUTS,
+    DriverConfig,
+    EgoConfig,
+    InteractionConfig,
+    RewardConfig,
+    RoadConfig,
+    SampleConfig,
+    ScenarioConfig,
+    SensingConfig,
+    SimConfig,
+    TrafficConfig,
+    VehicleConfig,
+    latency_steps,
+    load_scenario,
+    validate,
+)
+
+__all__ = [
+    "MAX_HIGHWAY_AGENTS",
+    "MAX_LATENCY_S",
+    "MAX_WARMUP_S",
+    "MAX_WEIGHT",
+    "MPH_TO_MPS",
+    "OBSERVATION_LAYOUTS",
+    "Bounds",
+    "DriverConfig",
+    "EgoConfig",
+    "InteractionConfig",
+    "RewardConfig",
+    "RoadConfig",
+    "SampleConfig",
+    "ScenarioConfig",
+    "SensingConfig",
+    "SimConfig",
+    "TrafficConfig",
+    "VehicleConfig",
+    "bounds_markdown",
+    "bounds_table",
+    "check_values",
+    "field_bounds",
+    "from_dict",
+    "get_dotted",
+    "latency_steps",
+    "load_scenario",
+    "num",
+    "positive",
+    "read_toml",
+    "require",
+    "set_dotted",
+    "to_dict",
+    "tomllib",
+    "validate",
+]

@@ -1,0 +1,83 @@
+"""The schema of a co-training run (`marlmerge cotrain`): the shared `RunConfig` and the
+schedule of phases (pretrain the ego, then rounds of adversary and ego phases)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from marlmerge.config.rules import num
+from marlmerge.config.training import MAX_SEED, MAX_STEPS, RunConfig
+
+PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
+PHASES = ("pretrain", "adversary", "ego")
+
+
+@dataclass(frozen=True)
+class CoTrainConfig(RunConfig):
+    """One co-training run: the shared run settings (`RunConfig`, used by both groups) and the
+    schedule. Learner settings follow the paper's recipe for both groups."""
+
+    KIND: ClassVar[str] = "cotrain"
+
+    name: str = "cotrain"
+    loss_log_every: int = 50
+    checkpoint_every_sim_steps: int = 400_000
+    profile: str = "adversarial"
+    """"adversarial" or "cooperative": the sign of the highway agents' interaction term."""
+    ego_init: str = ""
+    """A trained quadratic-Q ego (`policy.pt` or run folder) to start from; "" = pretrain here."""
+    ego_pretrain_sim_steps: int = num(1_600_000, 0, MAX_STEPS)
+    """Pretrain phase (skipped with `ego_init`): the paper's recipe against scripted traffic."""
+    rounds: int = num(5, 0, 10_000)
+    """(adversary, ego) phase pairs after pretraining."""
+    adversary_sim_steps: int = num(400_000, 0, MAX_STEPS)
+    """Simulator steps (summed over worlds) of each adversary phase; 0 skips them."""
+    ego_sim_steps: int = num(400_000, 0, MAX_STEPS)
+    """Simulator steps of each ego phase; 0 skips them (e.g. adversaries for a fixed ego)."""
+    scripted_fraction: float = num(0.5, 0.0, 1.0)
+    """Ego phases: share of egos that meet scripted traffic rather than a pool snapshot."""
+    pool_size: int = num(10, 1, 10_000)
+    """Adversary snapshots kept (oldest dropped first)."""
+    ego_updates_per_sim_step: float = num(1.0, 0.0, 100.0)
+    """Ego updates per simulator step of ego experience (paper: 1)."""
+    highway_updates_per_sim_step: float = num(0.5, 0.0, 100.0)
+    """Highway updates per simulator step of world experience (each step holds up to K agent
+    transitions, so ~0.5 updates per stored agent transition)."""
+    ego_sigma_start: float = num(1.0, 0.0, 20.0)
+    ego_sigma_end: float = num(0.1, 0.0, 20.0)
+    """Pretrain exploration, decaying linearly over the first half of the phase (paper)."""
+    ego_sigma_cotrain: float = num(0.2, 0.0, 20.0)
+    """Exploration noise of the ego in the ego phases (constant), m/s^2."""
+    highway_sigma_start: float = num(0.8, 0.0, 20.0)
+    highway_sigma_end: float = num(0.1, 0.0, 20.0)
+    """Adversary phases: exploration noise decaying linearly over each phase's first half."""
+    select_episodes: int = num(200, 0, 10_000_000)
+    """After training, every ego of the run (the starting ego and the ego after each ego phase)
+    meets scripted traffic and each of the run's own pool snapshots for this many greedy
+    episodes; `policy.pt` is the ego with the fewest failures (collisions + truncations), the
+    latest on ties. 0 keeps the last ego. The run's own adversaries only: held-out adversaries
+    never take part."""
+    select_seed: int = num(3_000_000, 0, MAX_SEED)
+    """First seed of the selection episodes (apart from `eval_seed` and the grid's seeds)."""
+
+    def __post_init__(self) -> None:
+        self._check()
+        if self.profile not in PROFILES:
+            raise ValueError(f"profile must be one of {tuple(PROFILES)}, got {self.profile!r}")
+        if not self.phases():
+            raise ValueError("the schedule is empty: every phase has 0 simulator steps")
+        if not self.ego_init and self.ego_pretrain_sim_steps == 0 and self.adversary_sim_steps:
+            raise ValueError("adversaries need a trained ego: set ego_init or pretrain")
+
+    def phases(self) -> list[tuple[str, int]]:
+        """The schedule: (phase kind, simulator steps) in order."""
+        out: list[tuple[str, int]] = []
+        if not self.ego_init and self.ego_pretrain_sim_steps > 0:
+            out.append(("pretrain", self.ego_pretrain_sim_steps))
+        for _ in range(self.rounds):
+            if self.adversary_sim_steps > 0:
+                out.append(("adversary", self.adversary_sim_steps))
+            if self.ego_sim_steps > 0:
+                out.append(("ego", self.ego_sim_steps))
+        return out

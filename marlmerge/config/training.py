@@ -1,0 +1,192 @@
+"""The one schema of training runs: a shared `RunConfig`, one table per algorithm, and the two
+kinds of run built on them (`TrainConfig` here, `marlmerge.config.cotraining.CoTrainConfig`).
+
+A preset (TOML in `trainers/`) names its kind (`kind = "train"` or `"cotrain"`); its keys are the
+fields below, the algorithm tables as TOML tables (`[dqn]`, `[td3]`). Every number is validated
+where the config is built: finite, and within the `Bounds` declared beside its field
+(`marlmerge.config.num`), with an error naming the full key and the value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from marlmerge.config.rules import check_values, num, positive, require
+
+PAPER_GAMMA = 0.95
+"""The discount factor of the paper's recipe (Sec. IV.B): every default discount."""
+ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
+"""The ego learners `marlmerge train` can train (`TrainConfig.algorithm`)."""
+
+UPDATE_PATHS = ("compiled", "fast", "torchrl")
+
+MAX_STEPS = 10**12
+"""Step counts and periods are at most this."""
+MAX_SEED = 2**63 - 1
+"""Seeds are integers in [0, MAX_SEED]."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What every training run has: its name, traffic, seed, worlds, the Q-learning settings
+    shared by its learners, logs, checkpoints and the final evaluation. Defaults are the
+    paper's recipe (Sec. IV.B, Table 1)."""
+
+    KIND: ClassVar[str] = ""
+    """The `kind` a preset of this schema names."""
+
+    name: str = "paper"
+    """Run name; outputs go to `runs/<name>` unless `--out` says otherwise."""
+    scenario: str = "default"
+    """Scenario preset in `envs/` (or a path): the traffic the run trains in."""
+    seed: int = num(0, 0, MAX_SEED)
+    """Seeds the traffic, the networks, exploration noise and replay sampling."""
+    num_worlds: int = num(32, 1, 65_536)
+    """B: independent worlds stepped together, each with its own ego, feeding one buffer."""
+    env_steps_per_batch: int = num(4, 1, 100_000)
+    """Env steps per world in each collector batch; updates follow each batch."""
+    batch_size: int = num(32, 1, 65_536)
+    """M: minibatch size."""
+    gamma: float = num(PAPER_GAMMA, 0.0, 1.0, low_open=True, high_open=True)
+    lr: float = positive(1.0e-3, 1.0)
+    target_update_period: int = num(500, 1, MAX_STEPS)
+    """p: the target network is a copy of the online one, refreshed every p updates."""
+    hidden: int = num(64, 1, 4096)
+    """Hidden width of the networks (quadq: each of A, B, C, two layers each)."""
+    replay_capacity: int = num(200_000, 1, 100_000_000)
+    """Transitions kept in each replay buffer (oldest dropped first)."""
+    learning_starts: int = num(1_000, 0, MAX_STEPS)
+    """No updates until a buffer holds this many transitions (those updates are skipped)."""
+    update_path: str = "compiled"
+    """"compiled" (torch.compile of the fast path), "fast" (same, eager) or "torchrl" (the
+    LossModule loop). The peers compile their gradient steps when "compiled"."""
+    updates_per_call: int = num(10, 1, 10_000)
+    """Updates fused into one call of the fast path; must divide `target_update_period`."""
+    threads: int = num(1, 1, 256)
+    """torch threads (tiny networks run fastest on one)."""
+    loss_log_every: int = num(5, 1, MAX_STEPS)
+    """Log the loss every this many updates (the paper stores it every 5 steps)."""
+    checkpoint_every_sim_steps: int = num(200_000, 1, MAX_STEPS)
+    """Checkpoint interval; a killed run resumes from its last checkpoint."""
+    eval_episodes: int = num(200, 0, 10_000_000)
+    """Greedy evaluation after training: this many held-out episodes ..."""
+    eval_seed: int = num(1_000_000, 0, MAX_SEED)
+    """... on roads seeded from here on (training seeds are small numbers)."""
+    eval_worlds: int = num(50, 1, 65_536)
+    """Episodes evaluated in parallel (one seed per group of this many)."""
+
+    def _check(self) -> None:
+        check_values(self)
+        require(
+            [
+                (
+                    self.replay_capacity >= self.batch_size,
+                    f"replay_capacity ({self.replay_capacity}) must be >= batch_size "
+                    f"({self.batch_size})",
+                ),
+                (
+                    self.update_path in UPDATE_PATHS,
+                    f"update_path must be one of {UPDATE_PATHS}, got {self.update_path!r}",
+                ),
+                (
+                    self.target_update_period % self.updates_per_call == 0,
+                    f"updates_per_call ({self.updates_per_call}) must divide "
+                    f"target_update_period ({self.target_update_period})",
+                ),
+            ]
+        )
+
+
+@dataclass(frozen=True)
+class DqnConfig:
+    """`[dqn]`: the DQN peer (torchrl `DQNLoss` over discrete acceleration levels)."""
+
+    hidden_layers: int = num(2, 1, 16)
+    """Hidden ReLU layers of width `hidden` in the Q-network."""
+    levels: int = num(7, 2, 1001)
+    """Acceleration levels evenly spaced over the ego bounds, both ends included."""
+    double: bool = False
+    """Double DQN target (online argmax, target value); the target is a hard copy every
+    `target_update_period` updates."""
+    epsilon_start: float = num(1.0, 0.0, 1.0)
+    """Epsilon-greedy exploration, epsilon falling linearly from this ..."""
+    epsilon_end: float = num(0.05, 0.0, 1.0)
+    """... to this over `sigma_decay_fraction` of `total_sim_steps`, then constant."""
+
+
+@dataclass(frozen=True)
+class Td3Config:
+    """`[td3]`: the TD3 peer. Its exploration is the Gaussian noise of `sigma_start` /
+    `sigma_end`, m/s^2."""
+
+    hidden_layers: int = num(2, 1, 16)
+    """Hidden ReLU layers of width `hidden` in the actor and each critic."""
+    tau: float = positive(0.005, 1.0)
+    """Polyak factor of the target networks (updated with each actor step)."""
+    policy_delay: int = num(2, 1, 1000)
+    """Critic updates per actor update."""
+    target_noise: float = num(0.7, 0.0, 20.0)
+    """Std of the target-policy smoothing noise, m/s^2 (TD3's 0.2 x half-range 3.5) ..."""
+    target_noise_clip: float = num(1.75, 0.0, 20.0)
+    """... clipped to +- this, m/s^2 (TD3's 0.5 x 3.5)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig(RunConfig):
+    """One run training the ego against scripted traffic (`marlmerge train`)."""
+
+    KIND: ClassVar[str] = "train"
+
+    total_sim_steps: int = num(1_600_000, 1, MAX_STEPS)
+    """N: simulator steps of ego experience, summed over all worlds (paper: 1.6 M)."""
+    updates_per_sim_step: float = num(1.0, 0.0, 100.0)
+    """Gradient updates per simulator step of experience (paper: 1, i.e. k per transition)."""
+    sigma_start: float = num(1.0, 0.0, 20.0)
+    """Exploration (quadq, td3): std of the Gaussian noise on the greedy action at the start,
+    m/s^2 ..."""
+    sigma_end: float = num(0.1, 0.0, 20.0)
+    """... decaying linearly to this ..."""
+    sigma_decay_fraction: float = num(0.5, 0.0, 1.0)
+    """... over this fraction of `total_sim_steps`, then constant (dqn: epsilon likewise)."""
+    algorithm: str = "quadq"
+    """Learner: "quadq" (the paper's quadratic Q), "dqn" (discrete levels, `[dqn]`) or "td3"
+    (`[td3]`). All use the shared settings above."""
+    dqn: DqnConfig = field(default_factory=DqnConfig)
+    td3: Td3Config = field(default_factory=Td3Config)
+
+    def __post_init__(self) -> None:
+        self._check()
+        require(
+            [
+                (
+                    self.algorithm in ALGORITHMS,
+                    f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
+                ),
+            ]
+        )
+
+
+FLAT_KEYS = {
+    "mlp_hidden_layers": ("dqn.hidden_layers", "td3.hidden_layers"),
+    "dqn_levels": ("dqn.levels",),
+    "dqn_double": ("dqn.double",),
+    "epsilon_start": ("dqn.epsilon_start",),
+    "epsilon_end": ("dqn.epsilon_end",),
+    "td3_tau": ("td3.tau",),
+    "td3_policy_delay": ("td3.policy_delay",),
+    "td3_target_noise": ("td3.target_noise",),
+    "td3_target_noise_clip": ("td3.target_noise_clip",),
+}
+"""Keys of version-0.3 configs (flat) and where they live now (the algorithm tables)."""
+
+
+def upgrade_flat_keys(data: dict[str, Any]) -> dict[str, Any]:
+    """A saved `TrainConfig` dict of an older version (flat algorithm keys) in today's layout."""
+    out = {k: v for k, v in data.items() if k not in FLAT_KEYS}
+    for old, new_keys in FLAT_KEYS.items():
+        if old in data:
+            for dotted in new_keys:
+                table, key = dotted.split(".")
+                out.setdefault(table, {})[key] = data[old]
+    return out

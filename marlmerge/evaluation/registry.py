@@ -1,0 +1,144 @@
+"""One registry of ego policies: a spec on the command line, in the grid or a video becomes an
+`obs [B, F] -> acceleration [B, 1]` function here, and nowhere else.
+
+Specs:
+- `hold` (keep speed), `idm` (car following that ignores the merge), `gap` (gap acceptance);
+- `[label=]KIND:GLOB` with KIND `quadq`, `dqn` or `td3`: the run folders (or `policy.pt` files)
+  GLOB matches, one per training seed; each file must hold a policy of that algorithm;
+- a run folder or a `policy.pt` of any algorithm (`policy_from_spec`);
+- any of these with `@filter` or `@nofilter` after the kind (`gap@filter`,
+  `quadq@nofilter:runs/robust_s*`): with or without the core's safety filter
+  (`ego.safety_filter`), whatever the policy was trained with; or with `@shield`
+  (`quadq@shield:runs/robust_s*`): its commands judged by gap acceptance
+  (`marlmerge.policies.gap_acceptance.GapShield`).
+
+A learned policy drives with the ego-side settings it was trained with (`EGO_SIDE_KEYS`: its
+observation layout and its safety filter), whatever the traffic condition it meets: the
+condition sets the traffic, the road and the sensors; `scenario_for` puts the two together.
+
+Saved policies are read by `marlmerge.learners.dqn.load_policy` in the one file
+format of `marlmerge.io.policy_file`.
+"""
+
+from __future__ import annotations
+
+import glob
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.evaluation.rollout import EgoPolicy
+
+RULE_POLICIES = ("hold", "idm", "gap")
+LEARNED_KINDS = ("quadq", "dqn", "td3")
+FILTER_MODIFIERS = {"filter": True, "nofilter": False}
+SHIELD_MODIFIER = "shield"
+EGO_SIDE_KEYS = (
+    "ego.observation",
+    "ego.time_to_merge_cap_s",
+    "ego.safety_filter",
+    "ego.safety_min_headway_s",
+    "ego.safety_min_gap_m",
+)
+"""What belongs to the driver rather than to the traffic: a learned policy keeps these."""
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """A policy: a rule, or a learned kind with one run folder per training seed."""
+
+    name: str
+    kind: str
+    runs: tuple[str, ...] = ()
+    safety_filter: bool | None = None
+    """`@filter` / `@nofilter`: the core's safety filter on / off; None: as trained (rules: off)."""
+    shield: bool = False
+    """`@shield`: the policy's commands pass through gap acceptance's judgement
+    (`marlmerge.policies.gap_acceptance.GapShield`)."""
+
+
+def parse_policy(spec: str) -> PolicySpec:
+    """`hold`, `idm`, `gap`, or `[label=]KIND:GLOB` (see the module docstring); every matched
+    run must hold a policy file of KIND."""
+    label, _, body = spec.rpartition("=")
+    head, _, pattern = body.partition(":")
+    kind, _, modifier = head.partition("@")
+    if modifier and modifier not in (*FILTER_MODIFIERS, SHIELD_MODIFIER):
+        raise ValueError(
+            f"policy {spec!r}: unknown modifier @{modifier} (@filter, @nofilter or @shield)"
+        )
+    flt = FILTER_MODIFIERS.get(modifier)
+    shield = modifier == SHIELD_MODIFIER
+    if kind in RULE_POLICIES and not pattern:
+        return PolicySpec(label or head, kind, safety_filter=flt, shield=shield)
+    if kind in LEARNED_KINDS and pattern:
+        from marlmerge.io.policy_file import read_policy
+
+        found = [m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")]
+        runs = tuple(found) or (pattern,)
+        missing = [r for r in runs if not (r.endswith(".pt") or (Path(r) / "policy.pt").exists())]
+        if missing:
+            raise ValueError(f"policy {spec!r}: no policy.pt in {missing[0]!r}")
+        for run in runs:
+            algorithm = read_policy(run, "ego")["algorithm"]
+            if algorithm != kind:
+                raise ValueError(f"policy {spec!r}: {run!r} holds a {algorithm} policy")
+        return PolicySpec(label or head, kind, runs, flt, shield)
+    raise ValueError(
+        f"unknown policy {spec!r} (use one of {', '.join(RULE_POLICIES)}, or "
+        f"[label=]{'|'.join(LEARNED_KINDS)}:RUN_GLOB)"
+    )
+
+
+def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
+    """The obs [B, F] -> action [B, 1] function of one policy (and one training run)."""
+    from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, GapShield
+
+    if spec.kind in LEARNED_KINDS:
+        from marlmerge.learners.loading import load_policy
+
+        policy = load_policy(run)
+    else:
+        from marlmerge.policies.scripted import IdmEgoPolicy, constant_speed_action
+
+        rule = {
+            "hold": constant_speed_action,
+            "idm": IdmEgoPolicy(scenario),
+            "gap": GapAcceptancePolicy(scenario),
+        }[spec.kind]
+        policy = lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)  # noqa: E731
+    if not spec.shield:
+        return policy
+    shield = GapShield(scenario)
+    return lambda obs: torch.as_tensor(shield(obs.numpy(), policy(obs).numpy()))
+
+
+def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -> ScenarioConfig:
+    """The scenario a policy meets in a traffic condition: the condition, with the ego-side
+    settings the (learned) policy was trained with and the filter its spec asks for."""
+    changes = {}
+    if run is not None:
+        from marlmerge.config import get_dotted
+        from marlmerge.learners.loading import load_scenario_of
+
+        trained = load_scenario_of(run)
+        changes = {key: get_dotted(trained, key) for key in EGO_SIDE_KEYS}
+    if spec.safety_filter is not None:
+        changes["ego.safety_filter"] = spec.safety_filter
+    return condition.replace(**changes) if changes else condition
+
+
+def policy_from_spec(spec: str, scenario: ScenarioConfig) -> EgoPolicy:
+    """`hold`, `idm`, `gap`, or a run folder / `policy.pt` of any learner."""
+    if spec in RULE_POLICIES:
+        return make_policy(PolicySpec(spec, spec), None, scenario)
+    path = Path(spec)
+    if not (path.suffix == ".pt" and path.exists()) and not (path / "policy.pt").exists():
+        raise ValueError(
+            f"policy {spec!r}: not one of {', '.join(RULE_POLICIES)} and no policy.pt there"
+        )
+    from marlmerge.learners.loading import load_policy
+
+    return load_policy(path)

@@ -1,0 +1,150 @@
+"""Evaluation of an ego policy on held-out roads: outcomes, merge time, comfort, safety.
+
+Metrics are computed from what happened, separately from the reward. Episode e is the first ego
+of a fresh world seeded `seed + e` (a road in steady flow; worlds are independent of the batch
+they run in), so the list of episodes is fixed by (`episodes`, `seed`) and shared by every
+policy evaluated with them; `worlds` only sets how many run at once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.sim.streams import WorldSeed
+from marlmerge.views.torchrl_env import BatchedMergeEnv
+from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
+
+EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
+"""observation [B, F] (the scenario's `ego.observation` layout) -> acceleration [B, 1] (m/s^2)."""
+HighwayPolicy = Callable[[torch.Tensor], torch.Tensor]
+"""highway observation [B, K, 12] -> acceleration [B, K, 1] (m/s^2)."""
+
+
+@torch.no_grad()
+def rollout_first_egos(
+    policy: EgoPolicy,
+    scenario: ScenarioConfig,
+    episodes: int,
+    seed: int,
+    worlds: int = 50,
+    record: bool = False,
+    highway_policy: HighwayPolicy | None = None,
+    road_seeds: Sequence[WorldSeed] | None = None,
+) -> tuple[dict[str, np.ndarray], list[dict[str, np.ndarray]]]:
+    """Run the first ego of `episodes` fresh worlds to its end.
+
+    Returns per-episode records (outcome code, time_s, total reward, mean |accel|, collisions
+    between mainline vehicles during the episode, the safety filter's interventions: simulator
+    steps whose command it overrode, 0 with the filter off) and, with `record`, each episode's
+    `EpisodeTrajectory` (simulator-step samples up to its end). With `highway_policy`, the K
+    highway agents of every world (`MultiAgentMergeEnv`) are driven by it instead of their
+    scripted profiles; the roads are the same either way. `road_seeds` (one per episode)
+    replace the seeds `seed + e`.
+    """
+    rec: dict[str, list[np.ndarray]] = {
+        "outcome": [],
+        "time_s": [],
+        "reward": [],
+        "mean_abs_accel": [],
+        "background_collisions": [],
+        "filter_interventions": [],
+    }
+    traces: list[EpisodeTrajectory] = []
+    lo, hi = scenario.ego.accel_bounds_mps2
+    for g in range(-(-episodes // worlds)):
+        nw = min(worlds, episodes - g * worlds)
+        seeds = (
+            [seed + g * worlds + i for i in range(nw)]
+            if road_seeds is None
+            else list(road_seeds[g * worlds : g * worlds + nw])
+        )
+        if highway_policy is None:
+            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seeds)
+        else:
+            env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seeds)
+            env.set_opponent_mix(1, 0.0)
+        td = env.reset()
+        background0 = env.core.state.background_collisions.copy()
+        background = np.zeros(nw, dtype=np.int64)
+        recorded: list[tuple[int, EpisodeTrajectory]] = []  # (world, episode)
+        if record:
+            recorder = TrajectoryRecorder(scenario, nw)
+            env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
+        outcome = np.zeros(nw, dtype=np.int64)
+        interventions = np.zeros(nw, dtype=np.int64)
+        time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
+        while (outcome == 0).any():
+            action = policy(td.get("observation")).reshape(nw, 1)
+            td.set("action", action)
+            if highway_policy is not None:
+                td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
+            nxt = env.step(td).get("next")
+            running = outcome == 0
+            background = np.where(
+                running, env.core.state.background_collisions - background0, background
+            )
+            abs_accel += np.abs(action.reshape(nw).double().clamp(lo, hi).numpy()) * running
+            steps += running
+            reward += nxt.get("reward").reshape(nw).numpy() * running
+            new = nxt.get("outcome").reshape(nw).numpy()
+            ended = running & (new != 0)
+            outcome[ended] = new[ended]
+            time_s[ended] = nxt.get("ego_time_s").reshape(nw).numpy()[ended]
+            interventions[ended] = env.core.state.filter_interventions[ended]
+            td = nxt
+        rec["outcome"].append(outcome)
+        rec["time_s"].append(time_s)
+        rec["reward"].append(reward)
+        rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
+        rec["background_collisions"].append(background)
+        rec["filter_interventions"].append(interventions)
+        traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
+    return {k: np.concatenate(v) for k, v in rec.items()}, traces
+
+
+def run_episodes(
+    policy: EgoPolicy,
+    scenario: ScenarioConfig,
+    episodes: int,
+    seed: int,
+    worlds: int = 50,
+    highway_policy: HighwayPolicy | None = None,
+) -> dict[str, np.ndarray]:
+    """Per-episode records: outcome code, time_s, total reward, mean |accel| (m/s^2), ..."""
+    return rollout_first_egos(
+        policy, scenario, episodes, seed, worlds, highway_policy=highway_policy
+    )[0]
+
+
+def summarize(rec: dict[str, np.ndarray]) -> dict[str, float]:
+    o = rec["outcome"]
+    ok = o == OUTCOME_SUCCESS
+    return {
+        "episodes": int(o.size),
+        "success_rate": float(np.mean(ok)),
+        "collision_rate": float(np.mean(o == OUTCOME_COLLISION)),
+        "truncation_rate": float(np.mean(o == OUTCOME_TRUNCATED)),
+        "mean_merge_time_s": float(np.mean(rec["time_s"][ok])) if ok.any() else float("nan"),
+        "mean_abs_accel_mps2": float(np.mean(rec["mean_abs_accel"])),
+        "mean_total_reward": float(np.mean(rec["reward"])),
+        "background_collisions_per_episode": float(np.mean(rec["background_collisions"])),
+    }
+
+
+def evaluate_policy(
+    policy: EgoPolicy,
+    scenario: ScenarioConfig,
+    episodes: int = 200,
+    seed: int = 1_000_000,
+    worlds: int = 50,
+    highway_policy: HighwayPolicy | None = None,
+) -> dict[str, float]:
+    """Summary of `episodes` held-out episodes of a policy (e.g. a learner's greedy action),
+    optionally against a learned highway policy."""
+    return summarize(run_episodes(policy, scenario, episodes, seed, worlds, highway_policy))

@@ -1,0 +1,94 @@
+"""Learned highway drivers: a neutral IDM driver plus a learned adjustment (the co-trained
+highway group of `marlmerge.training.cotrain`), their snapshots and their policy files."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from marlmerge.config import ScenarioConfig, from_dict, to_dict
+from marlmerge.io.policy_file import read_policy, weights_of, write_policy
+from marlmerge.learners.quadq import QuadraticQNet
+from marlmerge.policies.scripted import ScriptedHighwayPolicy
+from marlmerge.sim.observation import HIGHWAY_FEATURES
+
+HighwayPolicy = Callable[[Tensor], Tensor]
+"""observation [..., K, 12] -> acceleration [..., K, 1] (m/s^2), greedy."""
+
+
+OFFSET_BOUNDS_MPS2 = (-3.0, 3.0)
+"""Range of the learned adjustment a highway agent adds to its own car-following acceleration."""
+
+
+class ResidualHighwayPolicy:
+    """A learned highway driver: the acceleration of a neutral IDM driver acting on the same
+    observation (`ScriptedHighwayPolicy("neutral")`) plus a learned adjustment `offset(obs)`,
+    clipped to `sim.highway_agent_accel_bounds_mps2`. [..., K, 12] -> [..., K, 1] m/s^2.
+
+    The quadratic-Q network learns the adjustment (symmetric bounds, so an untrained network
+    drives like IDM): learning starts from an ordinary driver and searches for the deviations that
+    pay, instead of first having to learn to drive at all.
+    """
+
+    def __init__(self, offset: Callable[[Tensor], Tensor], scenario: ScenarioConfig) -> None:
+        self.offset = offset
+        self.idm = ScriptedHighwayPolicy("neutral", scenario)
+        self.low, self.high = scenario.sim.highway_agent_accel_bounds_mps2
+
+    def base(self, obs: Tensor) -> Tensor:
+        """The IDM part, [..., 1] m/s^2 (0 for masked-out, all-zero observations)."""
+        a = self.idm(obs.numpy())
+        return torch.as_tensor(np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=self.low))
+
+    @torch.no_grad()
+    def __call__(self, obs: Tensor) -> Tensor:
+        return (self.base(obs) + self.offset(obs)).clamp(self.low, self.high)
+
+
+def frozen_net(
+    state: dict[str, Tensor], obs_dim: int, hidden: int, bounds: tuple[float, float]
+) -> QuadraticQNet:
+    net = QuadraticQNet(obs_dim, hidden, action_low=bounds[0], action_high=bounds[1])
+    net.load_state_dict(state)
+    net.eval()
+    return net
+
+
+def snapshot_policy(
+    state: dict[str, Tensor],
+    hidden: int,
+    scen: ScenarioConfig,
+    bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
+) -> HighwayPolicy:
+    """The greedy highway policy of a pool snapshot: weights of the learned adjustment, whose
+    network squashes its greedy action into `bounds` (m/s^2)."""
+    net = frozen_net(state, len(HIGHWAY_FEATURES), hidden, bounds)
+    return ResidualHighwayPolicy(net.greedy, scen)
+
+
+def save_highway_policy(
+    path: Path,
+    state: dict[str, Tensor],
+    cfg: Any,
+    scen: ScenarioConfig,
+    bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
+) -> None:
+    """A highway group's policy: the adjustment network's weights and the `bounds` its greedy
+    action is squashed into (stored, so the file reloads as it was trained)."""
+    state = {"net": state, "hidden": cfg.hidden, "profile": cfg.profile}
+    write_policy(path, "highway", "quadq-residual", bounds, state, to_dict(cfg), to_dict(scen))
+
+
+def load_highway_policy(path: str | Path) -> HighwayPolicy:
+    """The greedy shared policy of a saved highway group (`highway_policy.pt` or its folder)."""
+    saved = read_policy(path, "highway")
+    scen = from_dict(ScenarioConfig, saved["scenario"])
+    low, high = saved["action_bounds_mps2"]
+    state = saved["policy_state"]
+    with weights_of(path):
+        return snapshot_policy(state["net"], state["hidden"], scen, (low, high))

@@ -1,0 +1,56 @@
+"""The checkpoint a `--resume` continues: the run's saved config (older layouts upgraded), checked
+against the requested one."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, TypeVar
+
+from marlmerge.config import from_dict, get_dotted, to_dict
+from marlmerge.config.training import upgrade_flat_keys
+from marlmerge.io import files
+
+C = TypeVar("C")
+
+
+def saved_config(cls: type[C], data: dict[str, Any]) -> C:
+    """The config stored in a checkpoint (older versions' flat algorithm keys upgraded)."""
+    return from_dict(cls, upgrade_flat_keys(data))
+
+
+def resume_config(cls: type[C], out: Path, requested: C, set_keys: Iterable[str]) -> C:
+    """The config of the run in `out` that `--resume` continues. A key given with `--set` must
+    agree with it (a resumed run continues that run: nothing is resumable with other values)."""
+    saved = saved_config(cls, files.load(out / "checkpoint.pt", "checkpoint")["config"])
+    for key in set_keys:
+        if get_dotted(saved, key) != get_dotted(requested, key):
+            raise ValueError(
+                f"--set {key}={get_dotted(requested, key)!r} differs from the run being resumed "
+                f"({key} = {get_dotted(saved, key)!r} in {out / 'checkpoint.pt'}): a resumed run "
+                "continues with its own config; start a new run with --out to change it"
+            )
+    return saved
+
+
+def open_checkpoint(cfg: Any, path: Path, version: int, done: tuple[str, int]) -> dict[str, Any]:
+    """The checkpoint `resume` continues: the run of `cfg` (same config, else an error naming
+    the keys) and, unless it had finished (`checkpoint[key] >= end` for `done = (key, end)`),
+    written in checkpoint layout `version`."""
+    if not path.exists():
+        raise ValueError(f"--resume: no checkpoint at {path}")
+    ckpt = files.load(path, "checkpoint")
+    saved = to_dict(saved_config(type(cfg), ckpt["config"]))
+    differ = [k for k, v in to_dict(cfg).items() if saved.get(k) != v]
+    if differ:
+        raise ValueError(
+            f"{path}: the run was made with other values of {', '.join(differ)}; resume it with "
+            f"its own config (`marlmerge {cfg.KIND} --out RUN --resume`)"
+        )
+    if ckpt[done[0]] < done[1] and ckpt.get("version") != version:
+        raise ValueError(
+            f"{path}: written by an older version of marlmerge (checkpoint layout "
+            f"{ckpt.get('version', 1)}, this version reads {version}): the run cannot be "
+            "resumed exactly; start it again"
+        )
+    return ckpt

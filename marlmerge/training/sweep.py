@@ -1,0 +1,208 @@
+"""`marlmerge sweep`: one training recipe over many seeds, on any backend, with a summary.
+
+    marlmerge sweep paper --seeds 0-9 --backend process --out runs/sweep_paper
+
+Each seed is one task (`marlmerge.evaluation.backends`; one CPU, one thread): it trains the preset
+with `seed = S` into `OUT/seed_S` (a normal run folder: `policy.pt`, logs, checkpoints) and
+evaluates the greedy policy on the preset's held-out roads (`eval_episodes` from `eval_seed`: the
+same roads for every seed). A sweep run again skips finished seeds and resumes interrupted ones from
+their checkpoints. `OUT/summary.md` and `summary.json` give, for every evaluation measure, the
+mean over seeds, the spread (standard deviation), a 95 % interval of the mean (Student t) and
+the worst seed. The run folders are ordinary: `marlmerge grid --policy "quadq:OUT/seed_*"` and
+`--set ego_init=OUT/seed_S/policy.pt` for co-training read them as they are.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from marlmerge.evaluation.backends import check_backend, run_tasks
+from marlmerge.io.files import write_text
+
+MEASURES = (
+    ("success_rate", True),
+    ("collision_rate", False),
+    ("truncation_rate", False),
+    ("mean_merge_time_s", False),
+    ("mean_abs_accel_mps2", False),
+)
+"""Evaluation measures summarised, and whether higher is better (for the worst seed)."""
+# two-sided 95 % Student t quantiles for 1..30 degrees of freedom (normal beyond)
+_T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179,
+        2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064,
+        2.060, 2.056, 2.052, 2.048, 2.045, 2.042)  # fmt: skip
+
+
+def parse_seeds(text: str) -> list[int]:
+    """`0-9`, `3`, `0,2,5` or `0-3,10-12` -> the seeds, each once, in order."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            lo, dash, hi = part.strip().partition("-")
+            seeds += list(range(int(lo), int(hi) + 1)) if dash else [int(lo)]
+    except ValueError:
+        raise ValueError(f"--seeds: expected e.g. 0-9 or 0,2,5, got {text!r}") from None
+    if not seeds or min(seeds) < 0:
+        raise ValueError(f"--seeds: need one or more seeds >= 0, got {text!r}")
+    return list(dict.fromkeys(seeds))
+
+
+@dataclass(frozen=True)
+class SeedTask:
+    kind: str
+    preset: str
+    overrides: tuple[tuple[str, Any], ...]
+    seed: int
+    out_dir: str
+
+
+def _load(task: SeedTask):  # noqa: ANN202 - a TrainConfig or a CoTrainConfig
+    kw = dict(task.overrides, seed=task.seed)
+    if task.kind == "train":
+        from marlmerge.training.train import load_train_config
+
+        return load_train_config(task.preset, **kw)
+    from marlmerge.training.cotrain import load_cotrain_config
+
+    return load_cotrain_config(task.preset, **kw)
+
+
+def run_seed(task: SeedTask) -> dict[str, Any]:
+    """Train (or resume, or reuse) one seed; returns its evaluation (the scripted-traffic
+    evaluation of a co-training run)."""
+    out = Path(task.out_dir)
+    done = out / "evaluation.json"
+    if not done.exists():
+        cfg = _load(task)
+        resume = (out / "checkpoint.pt").exists()
+        if task.kind == "train":
+            from marlmerge.training.train import train
+
+            train(cfg, out, resume=resume, progress=False)
+        else:
+            from marlmerge.training.cotrain import cotrain
+
+            cotrain(cfg, out, resume=resume, progress=False)
+    if not done.exists():
+        raise ValueError(f"{out}: the run wrote no evaluation.json (eval_episodes = 0?)")
+    evaluation = json.loads(done.read_text())
+    return evaluation.get("scripted", evaluation)
+
+
+def interval95(values: np.ndarray) -> tuple[float, float]:
+    """95 % interval of the mean (Student t); (nan, nan) for fewer than two values."""
+    n = values.size
+    if n < 2:
+        return math.nan, math.nan
+    t = _T95[n - 2] if n - 2 < len(_T95) else 1.96
+    half = t * float(values.std(ddof=1)) / math.sqrt(n)
+    return float(values.mean()) - half, float(values.mean()) + half
+
+
+def summarize(evaluations: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """Per measure: mean, std, 95 % interval and the worst seed over the seeds."""
+    seeds = sorted(evaluations)
+    out: dict[str, Any] = {"seeds": seeds, "per_seed": {str(s): evaluations[s] for s in seeds}}
+    for name, higher_better in MEASURES:
+        v = np.array([float(evaluations[s].get(name, math.nan)) for s in seeds])
+        ok = np.isfinite(v)
+        if not ok.any():
+            continue
+        worst_i = int(np.argmin(np.where(ok, v, np.inf)) if higher_better else np.argmax(
+            np.where(ok, v, -np.inf)
+        ))  # fmt: skip
+        lo, hi = interval95(v[ok])
+        out[name] = {
+            "mean": float(v[ok].mean()),
+            "std": float(v[ok].std(ddof=1)) if ok.sum() > 1 else 0.0,
+            "ci95": [lo, hi],
+            "worst_seed": seeds[worst_i],
+            "worst": float(v[worst_i]),
+        }
+    return out
+
+
+def summary_markdown(summary: dict[str, Any], preset: str, backend: str, wall_s: float) -> str:
+    seeds = summary["seeds"]
+    lines = [
+        f"# Sweep of `{preset}` over {len(seeds)} seeds",
+        "",
+        f"Seeds {', '.join(map(str, seeds))}; each evaluated greedily on the preset's held-out "
+        f"roads. {backend} backend, {wall_s:.0f} s for the seeds run here.",
+        "",
+        "| measure | mean | std | 95 % interval of the mean | worst seed |",
+        "|---|---|---|---|---|",
+    ]
+    for name, _ in MEASURES:
+        if name in summary:
+            m = summary[name]
+            lo, hi = m["ci95"]
+            lines.append(
+                f"| {name} | {m['mean']:.4g} | {m['std']:.3g} | {lo:.4g} – {hi:.4g} | "
+                f"{m['worst']:.4g} (seed {m['worst_seed']}) |"
+            )
+    lines += ["", "| seed | " + " | ".join(n for n, _ in MEASURES) + " |"]
+    lines.append("|---" * (len(MEASURES) + 1) + "|")
+    for s in seeds:
+        ev = summary["per_seed"][str(s)]
+        cells = [f"{float(ev.get(n, math.nan)):.4g}" for n, _ in MEASURES]
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def sweep(
+    preset: str,
+    seeds: list[int],
+    out_dir: str | Path,
+    overrides: dict[str, Any] | None = None,
+    backend: str = "process",
+    workers: int | None = None,
+    address: str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train `preset` once per seed on `backend` and summarise; see the module docstring. The
+    preset's `kind` says whether it is a `train` or a `cotrain` recipe."""
+    import time
+
+    from marlmerge.config.presets import preset_kind
+
+    kind = preset_kind(preset)
+    check_backend(backend, workers)
+    overrides = dict(overrides or {})
+    if "seed" in overrides:
+        raise ValueError("sweep: give the seeds with --seeds, not --set seed=...")
+    out = Path(out_dir)
+    tasks = [
+        SeedTask(kind, str(preset), tuple(sorted(overrides.items())), s, str(out / f"seed_{s}"))
+        for s in seeds
+    ]
+    _load(tasks[0])  # a bad preset or override fails here, before any work starts
+    out.mkdir(parents=True, exist_ok=True)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), unit="seed", desc=f"sweep ({backend})", dynamic_ncols=True)
+    t0 = time.perf_counter()
+    results = run_tasks(
+        run_seed,
+        tasks,
+        backend,
+        (lambda i, r: bar.update(1)) if bar is not None else None,
+        workers,
+        address,
+    )
+    wall = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+    summary = summarize(dict(zip(seeds, results, strict=True)))
+    summary.update(preset=str(preset), kind=kind, backend=backend, wall_s=wall)
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    (out / "summary.md").write_text(summary_markdown(summary, str(preset), backend, wall))
+    return summary

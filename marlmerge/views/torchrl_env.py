@@ -1,0 +1,185 @@
+"""A native torchrl view of the batched core: B worlds, one learning ego per world.
+
+`BatchedMergeEnv` is a torchrl `EnvBase` with batch size `[B]`. Every world runs its own traffic
+(scripted mainline drivers) and its own sequence of ramp vehicles; the ego of each world is the
+agent. One env step is one `TrafficCore.rollout` (the action held for `sim.action_repeat`
+simulator steps, rewards and observations computed by the core), exactly as in the PettingZoo
+view; this view only reshapes its outputs into tensors. A world whose ego is done is reset by
+torchrl's partial reset (`"_reset"` mask): the next ramp vehicle departs into the same flowing
+traffic.
+
+Keys (all with leading dim B):
+    "observation" [B, F]   the ego's observation: F = 7 (the paper's state) or 16
+                           (`ego.observation = "extended"`), `marlmerge.sim.observation`
+    "action"      [B, 1]   acceleration in m/s^2, clipped to the ego bounds; NaN raises
+    "reward"      [B, 1]   sum of the named terms over the env step
+    "reward_terms", <term> [B, 1] each named term (`marlmerge.sim.reward.EGO_TERMS`)
+    "outcome"     [B, 1]   int64 OUTCOME_* code of the ego (0 while running)
+    "ego_time_s"  [B, 1]   time since the ego departed (frozen once its episode ended)
+    "done" / "terminated" / "truncated" [B, 1]: terminated on success or collision, truncated when
+                           stalled or out of time.
+    "filter_interventions" [B, 1] int64, only with `ego.safety_filter`: simulator steps of the
+                           ego's episode whose command the safety filter overrode.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.config.presets import resolve_config
+from marlmerge.sim import (
+    OUTCOME_COLLISION,
+    OUTCOME_SUCCESS,
+    OUTCOME_TRUNCATED,
+    Rollout,
+    Roster,
+    TrafficCore,
+)
+from marlmerge.sim.action import as_actions
+from marlmerge.sim.reward import EGO_TERMS, total_reward
+
+
+class BatchedMergeEnv(EnvBase):
+    """torchrl env over `TrafficCore`: `num_worlds` independent worlds stepped at once."""
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        config: ScenarioConfig | str | Path | None = None,
+        num_worlds: int = 16,
+        seed: int | Sequence[int] = 0,
+        overrides: dict[str, Any] | None = None,
+        device: str | torch.device = "cpu",
+    ):
+        """seed: one int for the batch, or one per world (`marlmerge.sim.streams`)."""
+        super().__init__(device=device, batch_size=torch.Size([num_worlds]))
+        self.cfg = resolve_config(config, **(overrides or {}))
+        self.num_worlds = num_worlds
+        self.core = TrafficCore(self.cfg, batch_size=num_worlds, seed=seed)
+        self.recorder: Callable[[Rollout], None] | None = None
+        """Called with every env step's `Rollout` (evaluation records trajectories from its
+        per-simulator-step ego trace)."""
+        b = num_worlds
+        lo, hi = self.cfg.ego.accel_bounds_mps2
+        self.observation_spec = Composite(
+            observation=Unbounded((b, self.core.obs_size), dtype=torch.float32, device=device),
+            reward_terms=Composite(
+                {t: Unbounded((b, 1), dtype=torch.float32, device=device) for t in EGO_TERMS},
+                shape=(b,),
+                device=device,
+            ),
+            outcome=Unbounded((b, 1), dtype=torch.int64, device=device),
+            ego_time_s=Unbounded((b, 1), dtype=torch.float32, device=device),
+            shape=(b,),
+            device=device,
+        )
+        if self.cfg.ego.safety_filter:
+            self.observation_spec["filter_interventions"] = Unbounded(
+                (b, 1), dtype=torch.int64, device=device
+            )
+        self.action_spec = Bounded(lo, hi, (b, 1), dtype=torch.float32, device=device)
+        self.reward_spec = Unbounded((b, 1), dtype=torch.float32, device=device)
+        self.full_done_spec = Composite(
+            {
+                k: Categorical(2, (b, 1), dtype=torch.bool, device=device)
+                for k in ("done", "terminated", "truncated")
+            },
+            shape=(b,),
+            device=device,
+        )
+
+    # ------------------------------------------------------------------ torchrl hooks
+    def _set_seed(self, seed: int | None) -> None:
+        self.core.reset(seed=seed)
+
+    def sim_state(self) -> dict[str, Any]:
+        """The simulation's state, for checkpoints (`load_sim_state` continues bit for bit)."""
+        return {"core": self.core.state_dict()}
+
+    def load_sim_state(self, saved: dict[str, Any]) -> None:
+        """Restore `sim_state`; the next full reset keeps every world as it is."""
+        self.core.load_state_dict(saved["core"])
+        self.resume_without_reset()
+
+    def resume_without_reset(self) -> None:
+        """The next full reset keeps every world as it is (its ego mid-episode included), so a
+        collector built on a restored core continues where the saved run stopped."""
+        self._keep_on_reset = True
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        mask = np.ones(self.num_worlds, dtype=bool)
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.num_worlds).cpu().numpy()
+        elif getattr(self, "_keep_on_reset", False):
+            mask = np.zeros(self.num_worlds, dtype=bool)
+            self._keep_on_reset = False
+        self.core.next_ego(mask)
+        ego_obs, _ = self.core.observe()
+        zeros = np.zeros((self.num_worlds, len(EGO_TERMS)))
+        out = self._output(ego_obs, zeros, np.zeros(self.num_worlds, np.int64))
+        del out["reward"]
+        return out
+
+    def _actions(self, tensordict: TensorDictBase) -> np.ndarray:
+        """The ego accelerations [B] of a step; NaN or infinite values raise, naming the world."""
+        action = tensordict.get("action").reshape(self.num_worlds).to(torch.float64).cpu().numpy()
+        return as_actions(action, (self.num_worlds,))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self._simulate(self._actions(tensordict))
+        return self._output(out.ego_obs, out.ego_terms, out.ego_outcome)
+
+    def _simulate(
+        self, action: np.ndarray, roster: Roster | None = None, roster_cmd: np.ndarray | None = None
+    ) -> Rollout:
+        """One env step of the core: the ego accelerations `action` [B] (and the roster's
+        commands [B, K], NaN = scripted) held for `sim.action_repeat` simulator steps."""
+        out = self.core.rollout(action, roster=roster, roster_accel=roster_cmd)
+        if self.recorder is not None:
+            self.recorder(out)
+        return out
+
+    def _output(
+        self, ego_obs: np.ndarray, terms: np.ndarray, outcome: np.ndarray
+    ) -> TensorDictBase:
+        """The root keys from a step's observations [B, F], summed terms [B, len(EGO_TERMS)] and
+        outcomes."""
+        b = self.num_worlds
+        dev = self.device
+
+        def col(a: np.ndarray, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(a).reshape(b, 1), dtype=dtype, device=dev)
+
+        terminated = (outcome == OUTCOME_SUCCESS) | (outcome == OUTCOME_COLLISION)
+        truncated = outcome == OUTCOME_TRUNCATED
+        out = TensorDict(
+            {
+                "observation": torch.as_tensor(ego_obs, device=dev),
+                "reward": col(total_reward(terms)),
+                "reward_terms": TensorDict(
+                    {t: col(terms[:, i]) for i, t in enumerate(EGO_TERMS)}, batch_size=[b]
+                ),
+                "outcome": col(outcome, torch.int64),
+                "ego_time_s": col(self.core.state.ego_time_s.copy()),
+                "done": col(terminated | truncated, torch.bool),
+                "terminated": col(terminated, torch.bool),
+                "truncated": col(truncated, torch.bool),
+            },
+            batch_size=[b],
+            device=dev,
+        )
+        if self.cfg.ego.safety_filter:
+            out["filter_interventions"] = col(
+                self.core.state.filter_interventions.copy(), torch.int64
+            )
+        return out
