@@ -17,17 +17,35 @@ def _blocks(page: Path) -> list[str]:
     return BLOCK.findall(page.read_text())
 
 
+def _runs() -> list[tuple[Path, list[str]]]:
+    """What runs in one fresh interpreter: each README block on its own (a reader copies one),
+    a docs page's blocks in order, in one namespace (a page builds on its earlier blocks)."""
+    runs = [(ROOT / "README.md", [b]) for b in _blocks(ROOT / "README.md")]
+    return runs + [(p, _blocks(p)) for p in PAGES[1:] if _blocks(p)]
+
+
 @pytest.mark.parametrize(
-    "page", [p for p in PAGES if _blocks(p)], ids=lambda p: str(p.relative_to(ROOT))
+    "page, blocks",
+    _runs(),
+    ids=[f"{p.relative_to(ROOT)}:{i}" for i, (p, _) in enumerate(_runs())],
 )
 @pytest.mark.slow
-def test_python_blocks_run(page, tmp_path):
-    # the blocks of a page run in order, in one namespace, from a fresh folder
-    code = "\n\n".join(_blocks(page))
+def test_python_blocks_run(page, blocks, tmp_path):
     out = subprocess.run(
-        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900
+        [sys.executable, "-c", "\n\n".join(blocks)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=900,
     )
     assert out.returncode == 0, f"{page.name}:\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}"
+
+
+def test_the_readme_is_a_front_page():
+    readme = ROOT / "README.md"
+    assert len(readme.read_bytes()) <= 8 * 1024, "README.md over 8 KB: move detail to docs/"
+    for link in re.findall(r"\]\((docs/[^)#]+)", readme.read_text()):
+        assert (ROOT / link).exists(), f"README links to a missing page: {link}"
 
 
 @pytest.mark.slow

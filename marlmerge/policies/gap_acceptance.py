@@ -286,7 +286,7 @@ class GapShield:
     first command is nearest its own; if none does, gap acceptance's own action (dropping
     behind, waiting, or, past the point of waiting, the largest margin). From x_ov on, the
     command stands. A merger that floors the throttle on the ramp collides in 55 of 128 dense
-    roads and in none behind the shield (`tests/test_baselines.py`).
+    roads and in none behind the shield (`tests/test_gap_acceptance.py`).
 
     The settings were chosen on the grid and the first held-out set (`docs/robustness.md`):
     `commit_brake_mps2` 1.5 m/s^2 (gap acceptance's 3 m/s^2 hands over so late that the ego
