@@ -155,3 +155,87 @@ def test_worlds_draw_their_sensing_range_and_see_that_far():
     seen = left_front_dx < ranges - 1e-3
     assert np.allclose(left_front_dx[~seen], ranges[~seen], atol=1e-3)
     assert np.all(left_front_dx[seen] <= ranges[seen])
+
+
+WIDENED = {
+    "sample.desired_speed_factor": [0.5, 1.3],
+    "sample.time_headway_s": [0.6, 2.2],
+    "sample.politeness": [0.0, 1.0],
+    "sample.yield_max_brake_mps2": [0.5, 3.0],
+    "sample.adversarial_accel_mps2": [1.0, 4.0],
+    "sample.ramp_length_m": [40.0, 250.0],
+    "sample.merge_zone_m": [30.0, 140.0],
+}
+
+
+def test_the_widened_keys_draw_drivers_and_road_within_their_ranges():
+    core = TrafficCore(_cfg(**WIDENED), batch_size=8, seed=2)
+    base = core.cfg.driver
+    for w in (core.world_scenario(b) for b in range(8)):
+        d, r = w.driver, w.road
+        for key, (lo, hi) in (("desired_speed_factor", (0.5, 1.3)), ("time_headway_s", (0.6, 2.2))):
+            band, width = getattr(d, key), np.diff(getattr(base, key))[0]
+            assert lo <= np.mean(band) <= hi and np.diff(band)[0] == pytest.approx(width)
+        assert 0.5 <= d.yield_max_brake_mps2 <= 3 and 1 <= d.adversarial_accel_mps2 <= 4
+        assert 40 <= r.ramp_length_m <= 250 and 30 <= r.merge_zone_m <= 140
+    assert len({core.world_scenario(b).road.merge_zone_m for b in range(8)}) == 8
+
+
+def test_widening_keeps_the_existing_keys_draws_bit_identical():
+    # the widened keys are drawn after the others: a preset without them draws as before
+    plain = TrafficCore(_cfg(), batch_size=6, seed=3)
+    wide = TrafficCore(_cfg(**WIDENED), batch_size=6, seed=3)
+    for b in range(6):
+        p, w = plain.world_scenario(b), wide.world_scenario(b)
+        assert p.traffic == w.traffic and p.ego == w.ego and p.driver.mix == w.driver.mix
+
+
+@pytest.mark.parametrize("key, value", [("road.ramp_length_m", 90.0), ("road.merge_zone_m", 60.0)])
+def test_a_world_drawn_onto_a_road_drives_as_a_core_built_on_that_road(key, value):
+    # per-world geometry reaches the kernels: a degenerate range [v, v] in [sample] gives the
+    # same trajectories as a scenario whose road has v, with the same other draws
+    # (every range degenerate: the extra draw shifts no later draw's value)
+    sampled = {"sample.flow_vph_per_lane": [1500.0, 1500.0]}
+    on_road = ScenarioConfig().replace(**sampled, **{f"sample.{key.split('.')[1]}": [value] * 2})
+    drawn = TrafficCore(on_road, 4, 5)
+    built = TrafficCore(ScenarioConfig().replace(**sampled, **{key: value}), 4, 5)
+    assert np.array_equal(_run(drawn, 400), _run(built, 400))
+
+
+def test_a_drawn_centre_outside_its_fields_bounds_is_refused_naming_the_key():
+    with pytest.raises(ValueError, match="sample.desired_speed_factor"):
+        ScenarioConfig().replace(**{"sample.desired_speed_factor": [0.5, 1.95]})
+    with pytest.raises(ValueError, match="highway_upstream_m"):
+        ScenarioConfig().replace(**{"sample.ramp_length_m": [100.0, 380.0]})
+
+
+def test_worlds_given_their_scenarios_drive_as_cores_built_on_each():
+    base = ScenarioConfig()
+    own = [
+        base.replace(**{"traffic.flow_vph_per_lane": 700.0, "road.merge_zone_m": 60.0}),
+        base.replace(**{"driver.desired_speed_factor": [0.6, 0.8], "ego.sensing_range_m": 90.0}),
+    ]
+    batch = TrafficCore(base, 2, seed=[11, 12], scenarios=own)
+    alone = [TrafficCore(world, 1, seed=[11 + b]) for b, world in enumerate(own)]
+    rows_batch, rows_alone = [], []
+    for i in range(300):
+        out = batch.rollout(np.full(2, np.sin(i)))
+        rows_batch.append(np.concatenate([out.ego_obs, out.ego_terms], axis=1))
+        batch.next_ego(out.ego_outcome != 0)
+        ones = [core.rollout(np.full(1, np.sin(i))) for core in alone]
+        rows_alone.append(np.concatenate([np.c_[o.ego_obs, o.ego_terms] for o in ones]))
+        for core, one in zip(alone, ones, strict=True):
+            core.next_ego(one.ego_outcome != 0)
+    assert np.array_equal(np.array(rows_batch), np.array(rows_alone))
+    state = batch.state_dict()  # the worlds' scenarios are in the checkpoint
+    assert [w["road"]["merge_zone_m"] for w in state["world_scenarios"]] == [60.0, 100.0]
+
+
+def test_a_world_scenario_may_differ_only_in_what_sample_draws():
+    base = ScenarioConfig()
+    with pytest.raises(ValueError, match=r"scenarios\[1\]: driver.delta"):
+        TrafficCore(base, 2, seed=0, scenarios=[base, base.replace(**{"driver.delta": 3.0})])
+    with pytest.raises(ValueError, match="one per world"):
+        TrafficCore(base, 2, seed=0, scenarios=[base])
+    with pytest.raises(ValueError, match=r"\[sample\]"):
+        TrafficCore(_cfg(), 1, seed=0, scenarios=[base])

@@ -362,7 +362,9 @@ class SampleConfig:
     cooperative share of the rest (the remainder neutral), or, for a `pure_mix_fraction` of the
     draws, drivers of one profile only; the adversarial drivers' headway and
     speed factor; the centre c of the ramp vehicle's start speeds, drawn in (c - 3, c + 3) m/s;
-    the sensing range.
+    the sensing range; then the drivers (desired speed factor, time headway, politeness, yield
+    braking, adversarial acceleration) and the road (ramp length, merge zone). A range left out
+    draws nothing, so adding a key changes no other key's draws.
     """
 
     flow_vph_per_lane: Range | None = num(None, 0.0, 3000.0, ordered=True)
@@ -377,7 +379,22 @@ class SampleConfig:
     ego_start_speed_mps: Range | None = num(None, 0.0, 60.0, ordered=True)
     """Centre of the world's ramp-vehicle start speeds (each start drawn within +-3 m/s of it)."""
     sensing_range_m: Range | None = positive(None, 1000.0, ordered=True)
-    """The ramp vehicle's sensing range (`ego.sensing_range_m`), drawn last."""
+    """The ramp vehicle's sensing range (`ego.sensing_range_m`)."""
+    desired_speed_factor: Range | None = num(None, 0.3, 2.0, ordered=True)
+    """Centre of the mainline drivers' desired speed factor (`driver.desired_speed_factor`, its
+    width kept): below 1, mainline traffic drives slower than the limit."""
+    time_headway_s: Range | None = positive(None, 5.0, ordered=True)
+    """Centre of the drivers' IDM time headway (`driver.time_headway_s`, its width kept)."""
+    politeness: Range | None = num(None, 0.0, 2.0, ordered=True)
+    """Centre of the drivers' MOBIL politeness (`driver.politeness`, its width kept, >= 0)."""
+    yield_max_brake_mps2: Range | None = positive(None, 12.0, ordered=True)
+    """How hard a cooperative driver brakes at most to open a gap."""
+    adversarial_accel_mps2: Range | None = positive(None, 8.0, ordered=True)
+    """An adversarial driver's IDM maximum acceleration."""
+    ramp_length_m: Range | None = num(None, 0.0, 2000.0, ordered=True)
+    """The ramp's length before the merge zone (`road.ramp_length_m`)."""
+    merge_zone_m: Range | None = num(None, 10.0, 1000.0, ordered=True)
+    """The merge zone's length (`road.merge_zone_m`)."""
     pure_mix_fraction: float = num(0.0, 0.0, 1.0)
     """Share of draws whose drivers are all of one profile (neutral, cooperative or adversarial,
     equally likely), as in the grid's pure cells; the other draws use the shares above."""
@@ -499,6 +516,7 @@ def validate(cfg: ScenarioConfig) -> None:
             f"got {e.observation!r}",
         ),
         *_sensing_checks(cfg),
+        *_sample_checks(cfg),
     ]
     require(checks)
 
@@ -516,3 +534,35 @@ def _sensing_checks(cfg: ScenarioConfig) -> list[tuple[bool, str]]:
             f"sensing.latency_s must be a multiple of sim.dt_s ({dt}), got {lat}",
         ),
     ]
+
+
+def _sample_checks(cfg: ScenarioConfig) -> list[tuple[bool, str]]:
+    """A drawn value must give a valid scenario: a drawn centre keeps its field's width within the
+    field's bounds, and the longest drawn ramp and merge zone fit upstream of the merge."""
+    s, d, r = cfg.sample, cfg.driver, cfg.road
+    checks: list[tuple[bool, str]] = []
+    for key, pair, high in (
+        ("desired_speed_factor", d.desired_speed_factor, 2.0),
+        ("time_headway_s", d.time_headway_s, 5.0),
+        ("politeness", d.politeness, 2.0),
+    ):
+        drawn = getattr(s, key)
+        half = (pair[1] - pair[0]) / 2
+        if drawn is not None:
+            checks.append(
+                (
+                    drawn[1] + half <= high and (key == "politeness" or drawn[0] - half > 0),
+                    f"sample.{key} = {list(drawn)} with driver.{key}'s half-width {half:g} "
+                    f"leaves the field's bounds (0, {high:g}]",
+                )
+            )
+    ramp = r.ramp_length_m if s.ramp_length_m is None else s.ramp_length_m[1]
+    zone = r.merge_zone_m if s.merge_zone_m is None else s.merge_zone_m[1]
+    checks.append(
+        (
+            r.highway_upstream_m > ramp + zone,
+            f"road.highway_upstream_m ({r.highway_upstream_m:g}) must exceed the longest drawn "
+            f"ramp + merge zone ({ramp:g} + {zone:g})",
+        )
+    )
+    return checks

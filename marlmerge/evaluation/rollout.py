@@ -36,6 +36,7 @@ def rollout_first_egos(
     record: bool = False,
     highway_policy: HighwayPolicy | None = None,
     road_seeds: Sequence[WorldSeed] | None = None,
+    scenarios: Sequence[ScenarioConfig] | None = None,
 ) -> tuple[dict[str, np.ndarray], list[dict[str, np.ndarray]]]:
     """Run the first ego of `episodes` fresh worlds to its end.
 
@@ -45,7 +46,8 @@ def rollout_first_egos(
     `EpisodeTrajectory` (simulator-step samples up to its end). With `highway_policy`, the K
     highway agents of every world (`MultiAgentMergeEnv`) are driven by it instead of their
     scripted profiles; the roads are the same either way. `road_seeds` (one per episode)
-    replace the seeds `seed + e`.
+    replace the seeds `seed + e`; `scenarios` (one per episode, differing from `scenario` only
+    in what `[sample]` draws) give each episode its own traffic and road.
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
@@ -65,7 +67,10 @@ def rollout_first_egos(
             else list(road_seeds[g * worlds : g * worlds + nw])
         )
         if highway_policy is None:
-            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seeds)
+            own = None if scenarios is None else scenarios[g * worlds : g * worlds + nw]
+            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seeds, scenarios=own)
+        elif scenarios is not None:
+            raise ValueError("scenarios: not with a highway policy")
         else:
             env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seeds)
             env.set_opponent_mix(1, 0.0)

@@ -35,6 +35,7 @@ from marlmerge.sim.streams import (
     CHUNK,
     SCENARIO_STREAM,
     Streams,
+    check_world_scenarios,
     draw_world_scenario,
     world_seed_sequences,
 )
@@ -106,10 +107,16 @@ class TrafficCore:
         batch_size: int = 1,
         seed: int | Sequence[int] | None = None,
         parallel: bool | None = None,
+        scenarios: Sequence[ScenarioConfig] | None = None,
     ):
+        """scenarios: one per world, the traffic and road world b runs (each may differ from
+        `cfg` only in what `[sample]` draws, `WORLD_KEYS`); None: every world runs `cfg`."""
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        check_world_scenarios(cfg, batch_size, scenarios)
         self.cfg = cfg
+        self.fixed_scenarios = scenarios is not None
+        """Every world runs a scenario it was given (`scenarios`)."""
         self.batch_size = batch_size
         row = L.pack_params(cfg)
         self.params = np.tile(row, (batch_size, 1))  # [B, P]: each world's parameters
@@ -120,6 +127,8 @@ class TrafficCore:
         self._ring_len = latency_steps(cfg) + 1 if cfg.sensing.active else 0
         self.parallel = batch_size >= PARALLEL_MIN_WORLDS if parallel is None else bool(parallel)
         self.streams = Streams(cfg, batch_size)
+        for b, world in enumerate(scenarios or ()):
+            self._set_world_scenario(b, world)
         self._allocate(initial_slots(cfg), 2 * CHUNK)
         self._no_roster = Roster(np.zeros((L.RO_ROWS, batch_size, 0), dtype=np.int64))
         self._no_cmd = np.zeros((batch_size, 0))
@@ -647,7 +656,9 @@ class TrafficCore:
             "generators": [[g.bit_generator.state for g in gens] for gens in self.streams.gens],
             "served_k": self._served_k,
             "world_scenarios": (
-                [to_dict(c) for c in self.streams.cfgs] if self.cfg.sample.active else []
+                [to_dict(c) for c in self.streams.cfgs]
+                if self.cfg.sample.active or self.fixed_scenarios
+                else []
             ),
         }
 

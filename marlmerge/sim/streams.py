@@ -18,10 +18,11 @@ per-world `SeedSequence` is used as it is (the grid keys its roads that way).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-from marlmerge.config import MPH_TO_MPS, ScenarioConfig
+from marlmerge.config import MPH_TO_MPS, ScenarioConfig, to_dict
 from marlmerge.sim.drivers import entry_speed
 from marlmerge.sim.layout import (
     EGO_STREAM,
@@ -210,6 +211,61 @@ class Streams:
         return {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
 
 
+WORLD_KEYS = frozenset(
+    {
+        "name",
+        "traffic.flow_vph_per_lane",
+        "traffic.entry_speed_mps",
+        "road.speed_limit_mph",
+        "road.ramp_length_m",
+        "road.merge_zone_m",
+        "driver.mix_neutral",
+        "driver.mix_cooperative",
+        "driver.mix_adversarial",
+        "driver.desired_speed_factor",
+        "driver.time_headway_s",
+        "driver.politeness",
+        "driver.yield_max_brake_mps2",
+        "driver.adversarial_time_headway_s",
+        "driver.adversarial_speed_factor",
+        "driver.adversarial_accel_mps2",
+        "ego.start_speed_mps",
+        "ego.sensing_range_m",
+    }
+)
+"""The keys in which one world's scenario may differ from its batch's: what `[sample]` draws."""
+
+
+def _leaves(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        out.update(_leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+    return out
+
+
+def check_world_scenarios(
+    cfg: ScenarioConfig, batch_size: int, scenarios: Sequence[ScenarioConfig] | None
+) -> None:
+    """`scenarios` (one per world, or None) may differ from `cfg` only in `WORLD_KEYS`, and a
+    batch that draws its traffic (`[sample]`) takes none; a `ValueError` names the world and key."""
+    if scenarios is None:
+        return
+    if cfg.sample.active:
+        raise ValueError("scenarios: a batch that draws its traffic ([sample]) takes no scenarios")
+    if len(scenarios) != batch_size:
+        raise ValueError(f"scenarios: one per world ({batch_size}), got {len(scenarios)}")
+    base = _leaves(to_dict(cfg))
+    for b, world in enumerate(scenarios):
+        if not isinstance(world, ScenarioConfig):
+            raise ValueError(f"scenarios[{b}] must be a ScenarioConfig, got {type(world).__name__}")
+        own = _leaves(to_dict(world))
+        for key in sorted(k for k in own if own[k] != base[k] and k not in WORLD_KEYS):
+            raise ValueError(
+                f"scenarios[{b}]: {key} = {own[key]!r} differs from the batch's ({base[key]!r}); "
+                "a world may differ only in what [sample] draws (marlmerge.sim.streams.WORLD_KEYS)"
+            )
+
+
 def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> ScenarioConfig:
     """A world's traffic drawn from `base.sample` (see `marlmerge.config.SampleConfig`): every
     range drawn in a fixed order, so a world's scenarios depend on its seed alone."""
@@ -250,7 +306,21 @@ def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> Scenari
         for key in ("mix_neutral", "mix_cooperative", "mix_adversarial"):
             changes[f"driver.{key}"] = 1.0 if key == pure else 0.0
     changes["ego.sensing_range_m"] = draw(smp.sensing_range_m)
+    for key in ("desired_speed_factor", "time_headway_s", "politeness"):
+        changes[f"driver.{key}"] = _centred(getattr(d, key), draw(getattr(smp, key)))
+    changes["driver.yield_max_brake_mps2"] = draw(smp.yield_max_brake_mps2)
+    changes["driver.adversarial_accel_mps2"] = draw(smp.adversarial_accel_mps2)
+    changes["road.ramp_length_m"] = draw(smp.ramp_length_m)
+    changes["road.merge_zone_m"] = draw(smp.merge_zone_m)
     return base.replace(**{k: v for k, v in changes.items() if v is not None})
+
+
+def _centred(band: tuple[float, float], centre: float | None) -> list[float] | None:
+    """`band` moved to centre on `centre` (its width kept, its low end at least 0); None: kept."""
+    if centre is None:
+        return None
+    half = (band[1] - band[0]) / 2
+    return [max(centre - half, 0.0), centre + half]
 
 
 _FILL_KEYS = ("x_m", "v_mps", "lane", "v0_mps", "headway_s", "politeness", "profile")

@@ -60,12 +60,14 @@ class BatchedMergeEnv(EnvBase):
         seed: int | Sequence[int] = 0,
         overrides: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
+        scenarios: Sequence[ScenarioConfig] | None = None,
     ):
-        """seed: one int for the batch, or one per world (`marlmerge.sim.streams`)."""
+        """seed: one int for the batch, or one per world (`marlmerge.sim.streams`); scenarios:
+        one per world, the traffic and road it runs (`TrafficCore`)."""
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.cfg = resolve_config(config, **(overrides or {}))
         self.num_worlds = num_worlds
-        self.core = TrafficCore(self.cfg, batch_size=num_worlds, seed=seed)
+        self.core = TrafficCore(self.cfg, batch_size=num_worlds, seed=seed, scenarios=scenarios)
         self.recorder: Callable[[Rollout], None] | None = None
         """Called with every env step's `Rollout` (evaluation records trajectories from its
         per-simulator-step ego trace)."""
