@@ -1,0 +1,154 @@
+"""The space of traffic conditions a stress test searches (`marlmerge stress`) and the third
+held-out set is drawn from: every key `[sample]` draws, each over a range at least as wide as
+any preset's.
+
+A point of the space is a dict `{sample key: value}`; `scenario_at` turns it into the scenario a
+world runs (exactly what `[sample]` would draw at those values), `unit` / `from_unit` map it to
+and from the unit cube [0, 1]^D that the search works in, and `box_preset` writes a region of it
+(a box around a point) as a scenario preset with `[sample]` ranges, which reproduces the region
+with `marlmerge evaluate POLICY --scenario FILE`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from marlmerge.config import SampleConfig, ScenarioConfig, to_dict
+from marlmerge.sim.streams import draw_world_scenario
+
+
+@dataclass(frozen=True)
+class Dimension:
+    """One key of `[sample]` and the range the space spans."""
+
+    key: str
+    low: float
+    high: float
+    unit: str
+
+
+SPACE: tuple[Dimension, ...] = (
+    Dimension("flow_vph_per_lane", 200.0, 2200.0, "veh/h/lane"),
+    Dimension("speed_limit_mph", 45.0, 80.0, "mph"),
+    Dimension("entry_speed_fraction", 0.55, 1.05, "x limit"),
+    Dimension("adversarial_share", 0.0, 1.0, ""),
+    Dimension("cooperative_share", 0.0, 1.0, "of the rest"),
+    Dimension("adversarial_time_headway_s", 0.3, 1.5, "s"),
+    Dimension("adversarial_speed_factor", 0.9, 1.4, "x limit"),
+    Dimension("ego_start_speed_mps", 4.0, 26.0, "m/s"),
+    Dimension("sensing_range_m", 60.0, 200.0, "m"),
+    Dimension("desired_speed_factor", 0.55, 1.3, "x limit"),
+    Dimension("time_headway_s", 0.6, 2.4, "s"),
+    Dimension("politeness", 0.0, 1.0, ""),
+    Dimension("yield_max_brake_mps2", 0.5, 4.0, "m/s^2"),
+    Dimension("adversarial_accel_mps2", 1.0, 4.0, "m/s^2"),
+    Dimension("ramp_length_m", 30.0, 240.0, "m"),
+    Dimension("merge_zone_m", 40.0, 150.0, "m"),
+)
+"""The dimensions, in `[sample]`'s draw order. Ramp length + merge zone stay under the default
+road's 400 m upstream of the merge point."""
+
+ROAD_KEYS = ("ramp_length_m", "merge_zone_m")
+"""The dimensions that are the road's geometry (a batch of worlds shares its road's)."""
+HELDOUT3_SEED = 20261202
+"""The seed the third held-out set (`envs/heldout3_*`) was drawn with."""
+
+
+def unit(point: dict[str, float], space: tuple[Dimension, ...] = SPACE) -> np.ndarray:
+    """A point [D] in the unit cube."""
+    return np.array([(point[d.key] - d.low) / (d.high - d.low) for d in space])
+
+
+def from_unit(u: np.ndarray, space: tuple[Dimension, ...] = SPACE) -> dict[str, float]:
+    """The point of a vector [D] in the unit cube (clipped to it)."""
+    u = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
+    return {d.key: float(d.low + x * (d.high - d.low)) for d, x in zip(space, u, strict=True)}
+
+
+def latin_hypercube(n: int, dims: int, rng: np.random.Generator) -> np.ndarray:
+    """n points [n, dims] in the unit cube, one in each of n strata of every dimension."""
+    strata = np.stack([rng.permutation(n) for _ in range(dims)], axis=1)
+    return (strata + rng.uniform(size=(n, dims))) / n
+
+
+def scenario_at(base: ScenarioConfig, point: dict[str, float]) -> ScenarioConfig:
+    """The scenario a world runs at `point`: `base` with what `[sample]` draws at those values
+    (keys left out keep `base`'s), drawing nothing else."""
+    pinned = base.replace(**{f"sample.{k}": [v, v] for k, v in point.items()})
+    drawn = draw_world_scenario(pinned, np.random.default_rng(0))  # every range is a point
+    return dataclasses.replace(drawn, sample=SampleConfig())
+
+
+def box_preset(
+    centre: np.ndarray, half_width: float, name: str, space: tuple[Dimension, ...] = SPACE
+) -> dict[str, Any]:
+    """A scenario preset whose `[sample]` draws uniformly from the box centre +- half_width
+    (unit-cube coordinates, clipped to the cube), a fresh road for every ramp vehicle."""
+    lo, hi = from_unit(centre - half_width, space), from_unit(centre + half_width, space)
+    sample: dict[str, Any] = {d.key: [round(lo[d.key], 4), round(hi[d.key], 4)] for d in space}
+    return {"name": name, "sample": sample}
+
+
+def point_preset(base: ScenarioConfig, point: dict[str, float], name: str) -> dict[str, Any]:
+    """A scenario preset of the fixed condition at `point`: the keys that differ from `base`."""
+    cfg = dataclasses.replace(scenario_at(base, point), name=name)
+    return _diff(to_dict(cfg), to_dict(base)) | {"name": name}
+
+
+def heldout_points(n: int = 12, seed: int = HELDOUT3_SEED) -> list[dict[str, float]]:
+    """n conditions drawn uniformly and independently from `SPACE` by `seed` (not chosen)."""
+    rng = np.random.default_rng(seed)
+    return [from_unit(rng.uniform(size=len(SPACE))) for _ in range(n)]
+
+
+def write_heldout3(folder: Path, n: int = 12, seed: int = HELDOUT3_SEED) -> list[Path]:
+    """Write the third held-out set, `heldout3_01.toml` ... into `folder`."""
+    base, paths = ScenarioConfig(), []
+    for i, point in enumerate(heldout_points(n, seed), start=1):
+        name = f"heldout3_{i:02d}"
+        note = (
+            f"The third held-out set, condition {i} of {n}: drawn uniformly from the stress-test\n"
+            f"space (marlmerge.evaluation.space.SPACE) by seed {seed}, not chosen by anyone.\n"
+            "Remake the set with `marlmerge.evaluation.space.write_heldout3`."
+        )
+        paths.append(write_preset(folder / f"{name}.toml", point_preset(base, point, name), note))
+    return paths
+
+
+def _diff(data: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        if isinstance(v, dict):
+            sub = _diff(v, base[k])
+            if sub:
+                out[k] = sub
+        elif v != base[k]:
+            out[k] = v
+    return out
+
+
+def write_preset(path: Path, data: dict[str, Any], note: str = "") -> Path:
+    """Write a scenario preset (plain values and one level of tables) as TOML."""
+    lines = [f"# {line}" for line in note.splitlines()]
+    tables = {k: v for k, v in data.items() if isinstance(v, dict)}
+    lines += [f"{k} = {_toml(v)}" for k, v in data.items() if k not in tables]
+    for table, values in tables.items():
+        lines += ["", f"[{table}]", *(f"{k} = {_toml(v)}" for k, v in values.items())]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _toml(v: Any) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    return repr(v)

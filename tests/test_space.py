@@ -1,0 +1,70 @@
+"""The stress-test space: points become the scenarios `[sample]` would draw, presets reproduce
+them, and the third held-out set is the seed's draw, not a choice."""
+
+import numpy as np
+import pytest
+
+from marlmerge.config import ScenarioConfig, load_scenario
+from marlmerge.config.presets import preset_dir
+from marlmerge.evaluation.space import (
+    HELDOUT3_SEED,
+    SPACE,
+    box_preset,
+    from_unit,
+    heldout_points,
+    latin_hypercube,
+    point_preset,
+    scenario_at,
+    unit,
+    write_heldout3,
+    write_preset,
+)
+from marlmerge.sim.streams import draw_world_scenario
+
+
+def test_the_heldout3_files_are_the_seeds_draw(tmp_path):
+    drawn = write_heldout3(tmp_path)
+    assert len(drawn) == 12
+    for path in drawn:
+        committed = preset_dir("envs") / path.name
+        assert load_scenario(committed) == load_scenario(path), path.name
+
+
+def test_a_point_is_what_sample_draws_there():
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        point = from_unit(rng.uniform(size=len(SPACE)))
+        cfg = scenario_at(ScenarioConfig(), point)
+        assert not cfg.sample.active
+        assert cfg.traffic.flow_vph_per_lane == pytest.approx(point["flow_vph_per_lane"])
+        assert cfg.road.merge_zone_m == pytest.approx(point["merge_zone_m"])
+        assert np.mean(cfg.driver.desired_speed_factor) == pytest.approx(
+            point["desired_speed_factor"]
+        )
+        assert np.allclose(unit(point), unit(from_unit(unit(point))))
+
+
+def test_presets_reproduce_a_point_and_a_box(tmp_path):
+    point = heldout_points(1, seed=HELDOUT3_SEED + 1)[0]
+    fixed = write_preset(tmp_path / "p.toml", point_preset(ScenarioConfig(), point, "p"))
+    assert load_scenario(fixed) == scenario_at(ScenarioConfig(), point).replace(name="p")
+    centre = unit(point)
+    box = load_scenario(write_preset(tmp_path / "b.toml", box_preset(centre, 0.05, "b")))
+    lo, hi = from_unit(centre - 0.05), from_unit(centre + 0.05)
+    for _ in range(20):  # every world of the box preset draws inside the box
+        w = draw_world_scenario(box, np.random.default_rng(_))
+        assert lo["flow_vph_per_lane"] - 1e-3 <= w.traffic.flow_vph_per_lane
+        assert w.traffic.flow_vph_per_lane <= hi["flow_vph_per_lane"] + 1e-3
+        assert lo["ramp_length_m"] - 1e-3 <= w.road.ramp_length_m <= hi["ramp_length_m"] + 1e-3
+
+
+def test_the_latin_hypercube_fills_every_stratum():
+    u = latin_hypercube(50, len(SPACE), np.random.default_rng(0))
+    assert u.shape == (50, len(SPACE)) and (0 <= u).all() and (u < 1).all()
+    for d in range(len(SPACE)):
+        assert sorted(np.floor(u[:, d] * 50).astype(int)) == list(range(50))
+
+
+def test_every_corner_of_the_space_is_a_valid_scenario():
+    for corner in (np.zeros(len(SPACE)), np.ones(len(SPACE))):
+        scenario_at(ScenarioConfig(), from_unit(corner))  # raises if a corner were invalid
