@@ -1,5 +1,5 @@
-"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | plot | simulate | render |
-validate`.
+"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | stress | plot | simulate |
+render | validate`.
 
 `marlmerge --help` lists them."""
 
@@ -225,6 +225,30 @@ def grid_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def stress_cmd(args: argparse.Namespace) -> int:
+    """Search the traffic space for where a policy fails; verify and write the regions."""
+    from marlmerge.evaluation.stress import StressSettings, stress
+
+    settings = StressSettings(
+        seed=args.seed,
+        points=args.points,
+        episodes_per_point=args.episodes_per_point,
+        regions=args.regions,
+        rounds=args.rounds,
+        box=args.box,
+        verify_episodes=args.verify_episodes,
+        worlds=args.worlds,
+        budget_s=args.budget_s,
+    )
+    out = Path(args.out)
+    report = stress(args.policy, out, args.scenario, settings, clip=not args.no_clip)
+    print((out / "regions.md").read_text())
+    summary = {k: report[k] for k in ("policy", "episodes", "failure_rate", "wall_s")}
+    summary["regions"] = [[r["preset"], r["failure_rate"], r["ci95"]] for r in report["regions"]]
+    print(json.dumps(summary))
+    return 0
+
+
 def plot_cmd(args: argparse.Namespace) -> int:
     """Regenerate the paper's figures from a run's logs."""
     from marlmerge.training.plots import plot_run
@@ -400,6 +424,22 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-progress", action="store_true")
     _backend_args(g)
     g.set_defaults(func=grid_cmd)
+
+    st = sub.add_parser("stress", help="search the traffic space for where a policy fails")
+    st.add_argument("policy", help="hold, idm, gap, KIND:RUN (one run) or a run folder")
+    st.add_argument("--scenario", default="default", help="the traffic the space varies")
+    st.add_argument("--seed", type=_at_least(0), default=0)
+    st.add_argument("--points", type=_at_least(1), default=512, help="conditions per round")
+    st.add_argument("--episodes-per-point", type=_at_least(1), default=4)
+    st.add_argument("--regions", type=_at_least(1), default=8, help="regions to look for")
+    st.add_argument("--rounds", type=_at_least(1), default=4, help="focusing rounds per region")
+    st.add_argument("--box", type=float, default=0.05, help="a region's half-width (unit cube)")
+    st.add_argument("--verify-episodes", type=_at_least(1), default=200)
+    st.add_argument("--worlds", type=_at_least(1), default=512, help="worlds stepped at once")
+    st.add_argument("--budget-s", type=float, default=600.0, help="no new region after 80 %%")
+    st.add_argument("--out", default="runs/stress")
+    st.add_argument("--no-clip", action="store_true", help="no video of the first failures")
+    st.set_defaults(func=stress_cmd)
 
     pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
     pl.add_argument("run", help="run folder")

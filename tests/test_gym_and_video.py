@@ -123,3 +123,20 @@ def test_pettingzoo_suite_on_every_entry_point():
     meta = marlmerge.parallel_env().metadata
     assert meta["is_parallelizable"] and {"rgb_array", "human"} <= set(meta["render_modes"])
     assert meta["render_fps"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["dense", "robust_mix4"])
+def test_a_video_shows_the_evaluations_episodes(scenario):
+    # episode e of a video is episode e of the evaluation with the same seed: the same outcome
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.registry import policy_from_spec
+    from marlmerge.evaluation.rollout import rollout_first_egos
+    from marlmerge.evaluation.video import record_episodes
+    from marlmerge.sim import OUTCOME_NAMES
+
+    cfg = resolve_config(scenario)
+    policy = policy_from_spec("hold", cfg)
+    rec, _ = rollout_first_egos(policy, cfg, 5, 100, 5)
+    shown = [record_episodes(policy, cfg, 1, 100 + e)[1][0] for e in range(5)]
+    assert shown == [OUTCOME_NAMES[o] for o in rec["outcome"]]

@@ -5,6 +5,7 @@ keys (`"traffic.flow_vph_per_lane"`) to read and set one value."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import types
 import typing
@@ -18,6 +19,12 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 
 T = TypeVar("T")
+
+
+@functools.cache
+def type_hints(cls: type) -> dict[str, Any]:
+    """`typing.get_type_hints(cls)`, resolved once per class (it parses every annotation)."""
+    return typing.get_type_hints(cls)
 
 
 def set_dotted(data: dict[str, Any], dotted: str, value: Any, create: bool = False) -> None:
@@ -97,7 +104,7 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
 
 def from_dict(cls: type[T], data: dict[str, Any], _prefix: str = "") -> T:
     """Build `cls` from nested dicts. Unknown keys and wrongly typed values raise `ValueError`."""
-    hints = typing.get_type_hints(cls)
+    hints = type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(data) - names)
     if unknown:

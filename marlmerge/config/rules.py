@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import typing
 from dataclasses import dataclass, field
 from typing import Any
+
+from marlmerge.config.codec import type_hints
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,7 @@ def bounds_table(cls: type, prefix: str = "") -> list[tuple[str, Any, str]]:
     """(dotted key, default, allowed values) of every number of dataclass `cls`, nested tables
     included: the table the docs print and the tests walk."""
     rows: list[tuple[str, Any, str]] = []
-    hints = typing.get_type_hints(cls)
+    hints = type_hints(cls)
     for f in dataclasses.fields(cls):
         key = prefix + f.name
         if dataclasses.is_dataclass(hints[f.name]):

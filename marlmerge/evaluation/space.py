@@ -4,9 +4,8 @@ any preset's.
 
 A point of the space is a dict `{sample key: value}`; `scenario_at` turns it into the scenario a
 world runs (exactly what `[sample]` would draw at those values), `unit` / `from_unit` map it to
-and from the unit cube [0, 1]^D that the search works in, and `box_preset` writes a region of it
-(a box around a point) as a scenario preset with `[sample]` ranges, which reproduces the region
-with `marlmerge evaluate POLICY --scenario FILE`.
+and from the unit cube [0, 1]^D that the search works in, and `point_preset` / `write_preset`
+write a condition as a scenario preset.
 """
 
 from __future__ import annotations
@@ -18,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from marlmerge.config import SampleConfig, ScenarioConfig, to_dict
-from marlmerge.sim.streams import draw_world_scenario
+from marlmerge.config import ScenarioConfig, to_dict
+from marlmerge.sim.streams import world_changes
 
 
 @dataclass(frozen=True)
@@ -77,21 +76,11 @@ def latin_hypercube(n: int, dims: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def scenario_at(base: ScenarioConfig, point: dict[str, float]) -> ScenarioConfig:
-    """The scenario a world runs at `point`: `base` with what `[sample]` draws at those values
-    (keys left out keep `base`'s), drawing nothing else."""
-    pinned = base.replace(**{f"sample.{k}": [v, v] for k, v in point.items()})
-    drawn = draw_world_scenario(pinned, np.random.default_rng(0))  # every range is a point
-    return dataclasses.replace(drawn, sample=SampleConfig())
-
-
-def box_preset(
-    centre: np.ndarray, half_width: float, name: str, space: tuple[Dimension, ...] = SPACE
-) -> dict[str, Any]:
-    """A scenario preset whose `[sample]` draws uniformly from the box centre +- half_width
-    (unit-cube coordinates, clipped to the cube), a fresh road for every ramp vehicle."""
-    lo, hi = from_unit(centre - half_width, space), from_unit(centre + half_width, space)
-    sample: dict[str, Any] = {d.key: [round(lo[d.key], 4), round(hi[d.key], 4)] for d in space}
-    return {"name": name, "sample": sample}
+    """The scenario a world runs at `point`: `base` (which draws nothing itself) with what
+    `[sample]` draws at those values (keys left out keep `base`'s)."""
+    if base.sample.active:
+        raise ValueError(f"scenario_at: {base.name!r} draws its traffic ([sample])")
+    return base.replace(**world_changes(base, point))
 
 
 def point_preset(base: ScenarioConfig, point: dict[str, float], name: str) -> dict[str, Any]:

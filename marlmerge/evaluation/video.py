@@ -51,6 +51,7 @@ def record_episodes(
     hold = int(round(HOLD_LAST_S / cfg.sim.dt_s))
     for e in range(episodes):
         core = TrafficCore(cfg, batch_size=1, seed=[seed + e])
+        core.next_ego(np.ones(1, dtype=bool))  # as the evaluation's env reset does
         roster = core.make_roster(core.pick_roster(k_hw))
         caption = f"episode {e + 1}/{episodes}"
         frames.append(render_scene(core, 0, _agents(roster), view, caption))

@@ -255,7 +255,11 @@ def check_world_scenarios(
     if len(scenarios) != batch_size:
         raise ValueError(f"scenarios: one per world ({batch_size}), got {len(scenarios)}")
     base = _leaves(to_dict(cfg))
+    checked: set[int] = set()
     for b, world in enumerate(scenarios):
+        if id(world) in checked:  # a scenario given to many worlds is checked once
+            continue
+        checked.add(id(world))
         if not isinstance(world, ScenarioConfig):
             raise ValueError(f"scenarios[{b}] must be a ScenarioConfig, got {type(world).__name__}")
         own = _leaves(to_dict(world))
@@ -266,31 +270,64 @@ def check_world_scenarios(
             )
 
 
+DRAWN_BEFORE_MIX = (
+    "flow_vph_per_lane",
+    "speed_limit_mph",
+    "entry_speed_fraction",
+    "adversarial_share",
+    "cooperative_share",
+    "adversarial_time_headway_s",
+    "adversarial_speed_factor",
+    "ego_start_speed_mps",
+)
+DRAWN_AFTER_MIX = (
+    "sensing_range_m",
+    "desired_speed_factor",
+    "time_headway_s",
+    "politeness",
+    "yield_max_brake_mps2",
+    "adversarial_accel_mps2",
+    "ramp_length_m",
+    "merge_zone_m",
+)
+"""The `[sample]` keys in the order a world draws them (the one-profile draw in between)."""
+PURE_MIXES = ("mix_neutral", "mix_cooperative", "mix_adversarial")
+
+
 def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> ScenarioConfig:
     """A world's traffic drawn from `base.sample` (see `marlmerge.config.SampleConfig`): every
     range drawn in a fixed order, so a world's scenarios depend on its seed alone."""
-    smp, d = base.sample, base.driver
+    smp = base.sample
 
-    def draw(rng: tuple[float, float] | None) -> float | None:
+    def draw(key: str) -> float | None:
+        rng = getattr(smp, key)
         return None if rng is None else float(g.uniform(*rng))
 
-    flow, limit, frac = (
-        draw(smp.flow_vph_per_lane),
-        draw(smp.speed_limit_mph),
-        draw(smp.entry_speed_fraction),
-    )
-    adv, coop_share = draw(smp.adversarial_share), draw(smp.cooperative_share)
-    adv_hw, adv_v = draw(smp.adversarial_time_headway_s), draw(smp.adversarial_speed_factor)
-    start = draw(smp.ego_start_speed_mps)
+    values = {key: draw(key) for key in DRAWN_BEFORE_MIX}
+    pure = None
+    if smp.pure_mix_fraction > 0.0 and g.uniform() < smp.pure_mix_fraction:
+        pure = PURE_MIXES[int(g.integers(3))]
+    values |= {key: draw(key) for key in DRAWN_AFTER_MIX}
+    return base.replace(**world_changes(base, values, pure))
+
+
+def world_changes(
+    base: ScenarioConfig, values: dict[str, float | None], pure: str | None = None
+) -> dict[str, object]:
+    """The dotted-key changes to `base` of the `[sample]` keys' `values` (None or left out: kept)
+    and, with `pure`, drivers all of that profile."""
+    v, d = values.get, base.driver
+    limit, frac = v("speed_limit_mph"), v("entry_speed_fraction")
     changes: dict[str, object] = {
-        "traffic.flow_vph_per_lane": flow,
+        "traffic.flow_vph_per_lane": v("flow_vph_per_lane"),
         "road.speed_limit_mph": limit,
-        "driver.adversarial_time_headway_s": adv_hw,
-        "driver.adversarial_speed_factor": adv_v,
+        "driver.adversarial_time_headway_s": v("adversarial_time_headway_s"),
+        "driver.adversarial_speed_factor": v("adversarial_speed_factor"),
     }
     if frac is not None:
         limit_mps = (base.road.speed_limit_mph if limit is None else limit) * MPH_TO_MPS
         changes["traffic.entry_speed_mps"] = [frac * limit_mps, base.traffic.entry_speed_mps[1]]
+    adv, coop_share = v("adversarial_share"), v("cooperative_share")
     if adv is not None or coop_share is not None:
         adv = d.mix_adversarial / sum(d.mix) if adv is None else adv
         if coop_share is None:
@@ -298,21 +335,21 @@ def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> Scenari
         changes["driver.mix_adversarial"] = adv
         changes["driver.mix_cooperative"] = (1.0 - adv) * coop_share
         changes["driver.mix_neutral"] = (1.0 - adv) * (1.0 - coop_share)
+    start = v("ego_start_speed_mps")
     if start is not None:
         half = START_SPEED_HALF_WIDTH_MPS
         changes["ego.start_speed_mps"] = [max(start - half, 0.0), start + half]
-    if smp.pure_mix_fraction > 0.0 and g.uniform() < smp.pure_mix_fraction:
-        pure = ("mix_neutral", "mix_cooperative", "mix_adversarial")[int(g.integers(3))]
-        for key in ("mix_neutral", "mix_cooperative", "mix_adversarial"):
+    if pure is not None:
+        for key in PURE_MIXES:
             changes[f"driver.{key}"] = 1.0 if key == pure else 0.0
-    changes["ego.sensing_range_m"] = draw(smp.sensing_range_m)
+    changes["ego.sensing_range_m"] = v("sensing_range_m")
     for key in ("desired_speed_factor", "time_headway_s", "politeness"):
-        changes[f"driver.{key}"] = _centred(getattr(d, key), draw(getattr(smp, key)))
-    changes["driver.yield_max_brake_mps2"] = draw(smp.yield_max_brake_mps2)
-    changes["driver.adversarial_accel_mps2"] = draw(smp.adversarial_accel_mps2)
-    changes["road.ramp_length_m"] = draw(smp.ramp_length_m)
-    changes["road.merge_zone_m"] = draw(smp.merge_zone_m)
-    return base.replace(**{k: v for k, v in changes.items() if v is not None})
+        changes[f"driver.{key}"] = _centred(getattr(d, key), v(key))
+    for key in ("yield_max_brake_mps2", "adversarial_accel_mps2"):
+        changes[f"driver.{key}"] = v(key)
+    for key in ("ramp_length_m", "merge_zone_m"):
+        changes[f"road.{key}"] = v(key)
+    return {k: c for k, c in changes.items() if c is not None}
 
 
 def _centred(band: tuple[float, float], centre: float | None) -> list[float] | None:
