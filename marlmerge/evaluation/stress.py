@@ -234,7 +234,13 @@ class Search:
         return failed.reshape(len(u), m).mean(axis=1)
 
     def explore(self) -> tuple[np.ndarray, np.ndarray]:
+        """`points` conditions of a Latin hypercube over the whole space, and their failures."""
         u = latin_hypercube(self.s.points, len(SPACE), self.rng)
+        return u, self.evaluate(u)
+
+    def explore_outside(self) -> tuple[np.ndarray, np.ndarray]:
+        """`points` conditions drawn uniformly outside the regions found, and their failures."""
+        u = self.outside(lambda n: self.rng.uniform(size=(n, len(SPACE))))
         return u, self.evaluate(u)
 
     def outside_regions(self, u: np.ndarray) -> np.ndarray:
@@ -246,14 +252,19 @@ class Search:
         return keep
 
     def draw(self, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
-        """`points` draws of N(mean, std) in the cube, outside the regions found (a few tries)."""
-        u = np.clip(mean + std * self.rng.standard_normal((self.s.points, len(SPACE))), 0, 1)
+        """`points` draws of N(mean, std) in the cube, outside the regions found."""
+        d = len(SPACE)
+        return self.outside(lambda n: np.clip(mean + std * self.rng.standard_normal((n, d)), 0, 1))
+
+    def outside(self, fresh: Callable[[int], np.ndarray]) -> np.ndarray:
+        """`points` draws of `fresh(n)` [n, D], those inside a region found drawn again (a few
+        tries)."""
+        u = fresh(self.s.points)
         for _ in range(20):
             bad = ~self.outside_regions(u)
             if not bad.any():
                 break
-            fresh = mean + std * self.rng.standard_normal((int(bad.sum()), len(SPACE)))
-            u[bad] = np.clip(fresh, 0, 1)
+            u[bad] = fresh(int(bad.sum()))
         return u
 
     def elite(self, u: np.ndarray, fail: np.ndarray) -> np.ndarray | None:
@@ -288,7 +299,7 @@ class Search:
         """The dimensions the failure depends on, and where along each it fails. Conditions
         are drawn from the focused Gaussian, each dimension released to its whole range with
         probability `RELEASE`; a dimension defines the region if releasing it cuts the failure
-        rate to under 60 % (two-proportion z > 2), and where the conditions released along it
+        rate to under 75 % (two-proportion z > 2), and where the conditions released along it
         still fail bounds it (`failing_interval`). At most 4, the strongest first."""
         u = self.draw(mean, std)
         released = self.rng.uniform(size=u.shape) < RELEASE
@@ -302,7 +313,7 @@ class Search:
                 effect[d] = 1 - a.mean() / b.mean()
                 z[d] = (b.mean() - a.mean()) / max(pooled, 1e-12)
         order = np.argsort(-effect, kind="stable")
-        dims = [int(d) for d in order if effect[d] > 0.4 and z[d] > 2][:4] or [int(order[0])]
+        dims = [int(d) for d in order if effect[d] > 0.25 and z[d] > 2][:4] or [int(order[0])]
         bounds = {}
         for d in dims:  # released along d, the other defining dimensions kept focused
             rows = released[:, d] & ~released[:, [o for o in dims if o != d]].any(axis=1)
@@ -337,6 +348,9 @@ def stress(
             log(f"budget: stopped after {k} regions")
             break
         region = search.focus(u0, fail0)
+        if region is None:  # the exploration's failures all lie in the regions: explore anew
+            u0, fail0 = search.explore_outside()
+            region = search.focus(u0, fail0)
         if region is None:
             log(f"region {k + 1}: nothing more fails outside the regions found")
             break
