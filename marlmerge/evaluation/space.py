@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from marlmerge.config import ScenarioConfig, to_dict
+from marlmerge.io.files import write_text
 from marlmerge.sim.streams import world_changes
 
 
@@ -129,7 +130,7 @@ def write_preset(path: Path, data: dict[str, Any], note: str = "") -> Path:
     for table, values in tables.items():
         lines += ["", f"[{table}]", *(f"{k} = {_toml(v)}" for k, v in values.items())]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
     return path
 
 

@@ -52,6 +52,7 @@ from marlmerge.evaluation.space import (
     scenario_at,
     write_preset,
 )
+from marlmerge.io.files import write_text
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 
 ROAD_DIMS = [i for i, d in enumerate(SPACE) if d.key in ROAD_KEYS]
@@ -112,10 +113,16 @@ class Evaluator:
         key = tuple(round(point[SPACE[i].key], 9) for i in ROAD_DIMS)
         if key not in self._policies:
             keys = [SPACE[i].key for i in ROAD_DIMS]
-            road = self.base.replace(**{f"road.{k}": point[k] for k in keys})
-            cfg = scenario_for(self.spec, self.run, road)
-            self._policies[key] = (cfg, make_policy(self.spec, self.run, cfg))
+            self._policies[key] = self.policy_on(
+                self.base.replace(**{f"road.{k}": point[k] for k in keys})
+            )
         return self._policies[key]
+
+    def policy_on(self, condition: ScenarioConfig) -> tuple[ScenarioConfig, Any]:
+        """The scenario the policy meets in `condition` (its ego-side settings kept) and the
+        policy built for it."""
+        cfg = scenario_for(self.spec, self.run, condition)
+        return cfg, make_policy(self.spec, self.run, cfg)
 
     def outcomes(self, u: np.ndarray, seeds: np.ndarray) -> np.ndarray:
         """Outcome codes [N] of the roads seeded `seeds` [N] at the unit points `u` [N, D]."""
@@ -227,7 +234,7 @@ class Search:
     def evaluate(self, u: np.ndarray) -> np.ndarray:
         """Failure fraction [N] of each condition over `episodes_per_point` roads."""
         m = self.s.episodes_per_point
-        rep = np.repeat(snap_roads(u, self.s.road_levels), m, axis=0)
+        rep = np.repeat(u, m, axis=0)  # the evaluator snaps the roads
         seeds = self.next_seed + np.arange(len(rep))
         self.next_seed += len(rep)
         failed = self.ev.outcomes(rep, seeds) != OUTCOME_SUCCESS
@@ -371,11 +378,11 @@ def stress(
         "wall_s": time.perf_counter() - t0,
         "settings": asdict(s),
     }
-    (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
-    (out / "regions.md").write_text(regions_markdown(report, regions))
+    write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
+    write_text(out / "regions.md", regions_markdown(report, regions))
     if clip:
         report["clips"] = _clips(ev, regions, out, log)
-        (out / "report.json").write_text(json.dumps(report, indent=1) + "\n")
+        write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
     return report
 
 
@@ -386,15 +393,11 @@ def region_preset(region: Region, name: str, note: str) -> dict[str, Any]:
     lo, hi, centre = from_unit(region.lo), from_unit(region.hi), from_unit(region.centre)
     sample = {d.key: [round(lo[d.key], 4), round(hi[d.key], 4)] for d in SPACE}
     data: dict[str, Any] = {"name": name}
-    road = {key: centre[key] for key in ROAD_KEYS if SPACE.index(_dim(key)) in region.dims}
+    road = {SPACE[i].key: centre[SPACE[i].key] for i in ROAD_DIMS if i in region.dims}
     if road:
         data["road"] = road
     data["sample"] = {k: v for k, v in sample.items() if k not in ROAD_KEYS}
     return data
-
-
-def _dim(key: str) -> Any:
-    return next(d for d in SPACE if d.key == key)
 
 
 def verify(ev: Evaluator, region: Region, k: int, s: StressSettings, out: Path) -> Region:
@@ -407,8 +410,7 @@ def verify(ev: Evaluator, region: Region, k: int, s: StressSettings, out: Path) 
     )
     path = write_preset(out / "regions" / f"{name}.toml", region_preset(region, name, note), note)
     region.preset = str(path)
-    cfg = scenario_for(ev.spec, ev.run, load_scenario(path))
-    policy = make_policy(ev.spec, ev.run, cfg)
+    cfg, policy = ev.policy_on(load_scenario(path))
     first = s.seed * 1_000_000_000 + VERIFY_SEED_OFFSET + k * s.verify_episodes
     rec, _ = rollout_first_egos(policy, cfg, s.verify_episodes, first, s.worlds)
     ev.episodes += s.verify_episodes
@@ -478,8 +480,8 @@ def _clips(
 
     paths = []
     for r in [r for r in regions if r.first_failure_seed is not None][:3]:
-        cfg = scenario_for(ev.spec, ev.run, load_scenario(r.preset))
-        frames, _ = record_episodes(make_policy(ev.spec, ev.run, cfg), cfg, 1, r.first_failure_seed)
+        cfg, policy = ev.policy_on(load_scenario(r.preset))
+        frames, _ = record_episodes(policy, cfg, 1, r.first_failure_seed)
         try:
             path = write_video(
                 out / "clips" / f"{Path(r.preset).stem}.mp4", frames, 1 / cfg.sim.dt_s
