@@ -3,14 +3,50 @@ schedule of phases (pretrain the ego, then rounds of adversary and ego phases)."
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
-from marlmerge.config.rules import num
+from marlmerge.config.rules import num, positive, require
 from marlmerge.config.training import MAX_SEED, MAX_STEPS, RunConfig
 
 PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
 PHASES = ("pretrain", "adversary", "ego")
+HIGHWAY_ALGORITHMS = ("quadq", "ppo")
+"""The highway group's learners: the paper's quadratic Q (off-policy) or PPO (`[ppo]`)."""
+PPO_CRITICS = ("local", "central")
+"""IPPO's per-agent critic or MAPPO's centralised one (`marlmerge.learners.ppo`)."""
+
+
+@dataclass(frozen=True)
+class PpoConfig:
+    """`[ppo]`: the highway group's PPO learner (`highway_algorithm = "ppo"`), on torchrl's
+    `ClipPPOLoss` and GAE. Each collector batch is one rollout: `epochs` passes over it in
+    `minibatches` shuffled minibatches, then it is dropped."""
+
+    critic: str = "central"
+    """"local" (IPPO: the agent's own observation) or "central" (MAPPO: its own, the ego's and
+    every agent's of the world)."""
+    lr: float = positive(3.0e-4, 1.0)
+    gae_lambda: float = num(0.95, 0.0, 1.0)
+    clip_epsilon: float = positive(0.2, 1.0)
+    entropy_coeff: float = num(1.0e-3, 0.0, 10.0)
+    critic_coeff: float = num(0.5, 0.0, 100.0)
+    epochs: int = num(4, 1, 1000)
+    minibatches: int = num(4, 1, 100_000)
+    max_grad_norm: float = positive(0.5, 1.0e6)
+    init_std: float = positive(0.5, 10.0)
+    """Initial std of the policy's Gaussian before the tanh squashing (roughly m/s^2 of offset
+    near 0, where tanh is linear: the offsets are in +-3 m/s^2)."""
+
+    def __post_init__(self) -> None:
+        require(
+            [
+                (
+                    self.critic in PPO_CRITICS,
+                    f"ppo.critic must be one of {PPO_CRITICS}, got {self.critic!r}",
+                )
+            ]
+        )
 
 
 @dataclass(frozen=True)
@@ -60,9 +96,19 @@ class CoTrainConfig(RunConfig):
     never take part."""
     select_seed: int = num(3_000_000, 0, MAX_SEED)
     """First seed of the selection episodes (apart from `eval_seed` and the grid's seeds)."""
+    highway_algorithm: str = "quadq"
+    """The highway group's learner: "quadq" (a residual quadratic Q, `highway_*` settings) or
+    "ppo" (IPPO / MAPPO, `[ppo]`; it learns once per collector batch, so
+    `highway_updates_per_sim_step` and the highway exploration schedule do not apply)."""
+    ppo: PpoConfig = field(default_factory=PpoConfig)
 
     def __post_init__(self) -> None:
         self._check()
+        if self.highway_algorithm not in HIGHWAY_ALGORITHMS:
+            raise ValueError(
+                f"highway_algorithm must be one of {HIGHWAY_ALGORITHMS}, "
+                f"got {self.highway_algorithm!r}"
+            )
         if self.profile not in PROFILES:
             raise ValueError(f"profile must be one of {tuple(PROFILES)}, got {self.profile!r}")
         if not self.phases():

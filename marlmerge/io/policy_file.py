@@ -5,8 +5,8 @@ A policy file is a `marlmerge.io.files` file (tensors and plain data only, never
     format             "marlmerge-policy"
     version            1
     group              "ego" (the ramp vehicle) or "highway" (learned mainline drivers)
-    algorithm          "quadq", "dqn" or "td3" (ego); "quadq-residual" (highway: IDM plus a
-                       learned adjustment)
+    algorithm          "quadq", "dqn" or "td3" (ego); "quadq-residual" or "ppo-residual"
+                       (highway: IDM plus a learned adjustment)
     observation        {"features": [names], "size": n}: the layout the network reads
                        (`marlmerge.sim.observation`; an ego's is the layout of its scenario's
                        `ego.observation`)
@@ -83,7 +83,7 @@ def write_policy(
 
 ALGORITHMS: dict[str, tuple[str, ...]] = {
     "ego": EGO_ALGORITHMS,
-    "highway": ("quadq-residual",),
+    "highway": ("quadq-residual", "ppo-residual"),
 }
 """The algorithms a policy file of each group may name (the ego's: what `marlmerge train` can
 train, `TrainConfig.algorithm`)."""
@@ -92,6 +92,7 @@ STATE_KEYS = {
     "dqn": ("net", "hidden", "layers", "levels"),
     "td3": ("net", "hidden", "layers"),
     "quadq-residual": ("net", "hidden"),
+    "ppo-residual": ("net", "hidden"),
 }
 """What `policy_state` must hold for each algorithm (its loader rebuilds the network from it)."""
 TOP_KEYS = {

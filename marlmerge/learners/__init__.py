@@ -3,7 +3,8 @@
 - `quadq` (the paper's quadratic-in-action Q-function, its loss and fused update path) and
   `quadq_learner` (the protocol over it);
 - `dqn` and `td3`, its peers over torchrl losses, sharing `common`;
-- `highway`, the learned highway driver (a residual on the scripted profile);
+- `highway`, the learned highway driver (a residual on the scripted profile), and `ppo`, the
+  highway group's PPO learner (IPPO / MAPPO);
 - `loading`: `make_learner` by algorithm name and the one `load_policy` of a saved ego.
 """
 

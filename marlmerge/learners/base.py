@@ -19,13 +19,15 @@ class Learner:
     """What the training loop needs from a learner.
 
     Attributes:
-        algorithm: `"quadq"`, `"dqn"` or `"td3"` (the policy file's `algorithm`).
+        algorithm: `"quadq"`, `"dqn"`, `"td3"` or `"ppo"` (the highway group's PPO).
         compile_time_s: seconds spent in the first (compiling) calls of compiled update steps;
             `None` when they run eagerly.
     """
 
     algorithm: str = ""
     compile_time_s: float | None = None
+    on_policy: bool = False
+    """True: `learn` consumes the rollout stored since its last call (PPO), whatever is owed."""
 
     def act(self, obs: Tensor, sim_step: int, generator: torch.Generator | None) -> dict:
         """Exploring (`generator` given) or greedy action: `{"action": [B, 1] m/s^2, ...}`."""

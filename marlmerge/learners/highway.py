@@ -13,6 +13,7 @@ from torch import Tensor
 
 from marlmerge.config import ScenarioConfig, from_dict, to_dict
 from marlmerge.io.policy_file import read_policy, weights_of, write_policy
+from marlmerge.learners.ppo import greedy_offset, make_actor_net
 from marlmerge.learners.quadq import QuadraticQNet
 from marlmerge.policies.scripted import ScriptedHighwayPolicy
 from marlmerge.sim.observation import HIGHWAY_FEATURES
@@ -35,7 +36,9 @@ class ResidualHighwayPolicy:
     pay, instead of first having to learn to drive at all.
     """
 
-    def __init__(self, offset: Callable[[Tensor], Tensor], scenario: ScenarioConfig) -> None:
+    def __init__(
+        self, offset: Callable[[Tensor], Tensor | dict[str, Tensor]], scenario: ScenarioConfig
+    ) -> None:
         self.offset = offset
         self.idm = ScriptedHighwayPolicy("neutral", scenario)
         self.low, self.high = scenario.sim.highway_agent_accel_bounds_mps2
@@ -46,8 +49,17 @@ class ResidualHighwayPolicy:
         return torch.as_tensor(np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=self.low))
 
     @torch.no_grad()
-    def __call__(self, obs: Tensor) -> Tensor:
-        return (self.base(obs) + self.offset(obs)).clamp(self.low, self.high)
+    def __call__(self, obs: Tensor) -> Tensor | dict[str, Tensor]:
+        """The acceleration [..., K, 1]; when `offset` returns a dict (a learner's `act`: the
+        offset as `"action"` and what else it acted with), that dict with the acceleration as
+        its `"action"`."""
+        offset = self.offset(obs)
+        if isinstance(offset, dict):
+            return {**offset, "action": self._add(obs, offset["action"])}
+        return self._add(obs, offset)
+
+    def _add(self, obs: Tensor, offset: Tensor) -> Tensor:
+        return (self.base(obs) + offset).clamp(self.low, self.high)
 
 
 def frozen_net(
@@ -59,16 +71,31 @@ def frozen_net(
     return net
 
 
+def greedy_adjustment(
+    algorithm: str, state: dict[str, Tensor], hidden: int, bounds: tuple[float, float]
+) -> Callable[[Tensor], Tensor]:
+    """The greedy learned adjustment obs [..., 12] -> [..., 1] m/s^2 in `bounds`, from the
+    weights of a "quadq" (quadratic-Q network) or "ppo" (PPO actor) highway learner."""
+    if algorithm == "quadq":
+        return frozen_net(state, len(HIGHWAY_FEATURES), hidden, bounds).greedy
+    if algorithm != "ppo":
+        raise ValueError(f"unknown highway algorithm {algorithm!r} (one of 'quadq', 'ppo')")
+    net = make_actor_net(len(HIGHWAY_FEATURES), hidden, 1.0)
+    net.load_state_dict(state)
+    net.eval()
+    return torch.no_grad()(lambda obs: greedy_offset(net, obs, *bounds))
+
+
 def snapshot_policy(
     state: dict[str, Tensor],
     hidden: int,
     scen: ScenarioConfig,
     bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
+    algorithm: str = "quadq",
 ) -> HighwayPolicy:
-    """The greedy highway policy of a pool snapshot: weights of the learned adjustment, whose
-    network squashes its greedy action into `bounds` (m/s^2)."""
-    net = frozen_net(state, len(HIGHWAY_FEATURES), hidden, bounds)
-    return ResidualHighwayPolicy(net.greedy, scen)
+    """The greedy highway policy of a pool snapshot: weights of the learned adjustment (of
+    `algorithm`'s network), squashed into `bounds` (m/s^2)."""
+    return ResidualHighwayPolicy(greedy_adjustment(algorithm, state, hidden, bounds), scen)
 
 
 def save_highway_policy(
@@ -79,9 +106,11 @@ def save_highway_policy(
     bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
 ) -> None:
     """A highway group's policy: the adjustment network's weights and the `bounds` its greedy
-    action is squashed into (stored, so the file reloads as it was trained)."""
+    action is squashed into (stored, so the file reloads as it was trained); the file's
+    algorithm is `cfg.highway_algorithm` + "-residual"."""
     state = {"net": state, "hidden": cfg.hidden, "profile": cfg.profile}
-    write_policy(path, "highway", "quadq-residual", bounds, state, to_dict(cfg), to_dict(scen))
+    algorithm = f"{getattr(cfg, 'highway_algorithm', 'quadq')}-residual"
+    write_policy(path, "highway", algorithm, bounds, state, to_dict(cfg), to_dict(scen))
 
 
 def load_highway_policy(path: str | Path) -> HighwayPolicy:
@@ -90,5 +119,6 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
     scen = from_dict(ScenarioConfig, saved["scenario"])
     low, high = saved["action_bounds_mps2"]
     state = saved["policy_state"]
+    algorithm = saved["algorithm"].removesuffix("-residual")
     with weights_of(path):
-        return snapshot_policy(state["net"], state["hidden"], scen, (low, high))
+        return snapshot_policy(state["net"], state["hidden"], scen, (low, high), algorithm)

@@ -1,8 +1,9 @@
 """Co-training of learned highway agents and the ego: alternating phases on `MultiAgentMergeEnv`.
 
-Two agent groups learn with the paper's quadratic-Q learner (`QuadQLearner`), each a
-`LearningGroup` of `marlmerge.training.loop` with its own network, loss, optimiser and target,
-torchrl `ReplayBuffer` and seeded generators, trained by the one loop (`run_loop`) once per phase:
+Two agent groups learn, each a `LearningGroup` of `marlmerge.training.loop` with its own
+learner, torchrl `ReplayBuffer` and seeded generators, trained by the one loop (`run_loop`) once
+per phase: the ego with the paper's quadratic-Q learner (`QuadQLearner`), the highway group with
+it too or, with `highway_algorithm = "ppo"`, with IPPO / MAPPO (`PPOHighwayLearner`, `[ppo]`):
 
 - `"ego"`: the ramp vehicle (observation [B, d]: 7 features, 16 in the extended layout;
   acceleration in the ego bounds);
@@ -70,6 +71,7 @@ from marlmerge.learners.highway import (
     save_highway_policy,
     snapshot_policy,
 )
+from marlmerge.learners.ppo import PPOHighwayLearner, critic_observation, critic_size
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.sim import OUTCOME_NAMES
@@ -102,10 +104,14 @@ class JointPolicy:
 
     ego(obs [B, d]) -> [B, 1]; highway[o](obs [n, K, 12]) -> [n, K, 1] for the worlds whose
     `"opponent"` is o (worlds with -1 are scripted: their actions are ignored, zeros are sent).
+    A highway policy may return a dict instead: `"action"` and what else its learner keeps from
+    acting (PPO's pre-squash sample `"z"`), each [n, K, m], set under `("highway", key)`.
     """
 
     def __init__(
-        self, ego: Callable[[Tensor], Tensor], highway: list[Callable[[Tensor], Tensor]]
+        self,
+        ego: Callable[[Tensor], Tensor],
+        highway: list[Callable[[Tensor], Tensor | dict[str, Tensor]]],
     ) -> None:
         self.ego = ego
         self.highway = highway
@@ -115,12 +121,15 @@ class JointPolicy:
         td.set("action", self.ego(td.get("observation")))
         obs = td.get((GROUP, "observation"))  # [B, K, 12]
         opp = td.get("opponent").reshape(-1)  # [B]
-        act = torch.zeros(*obs.shape[:-1], 1)
+        out: dict[str, Tensor] = {"action": torch.zeros(*obs.shape[:-1], 1)}
         for o in torch.unique(opp).tolist():
             if o >= 0:
                 sel = opp == o
-                act[sel] = self.highway[o](obs[sel])
-        td.set((GROUP, "action"), act)
+                acted = self.highway[o](obs[sel])
+                for key, value in (acted if isinstance(acted, dict) else {"action": acted}).items():
+                    out.setdefault(key, torch.zeros(*obs.shape[:-1], value.shape[-1]))[sel] = value
+        for key, value in out.items():
+            td.set((GROUP, key), value)
         return td
 
 
@@ -221,6 +230,43 @@ def make_group(
     )
 
 
+def make_ppo_group(cfg: CoTrainConfig, obs_dim: int, ego_dim: int, k: int, seed: int):
+    """The highway group with the PPO learner of `[ppo]` (networks from `seed`, exploration
+    noise `seed + 1`, minibatch order `seed + 2`); it always samples while it learns."""
+    p = cfg.ppo
+    learner = PPOHighwayLearner(
+        obs_dim,
+        critic_size(obs_dim, ego_dim, k, p.critic),
+        cfg.hidden,
+        *OFFSET_BOUNDS_MPS2,
+        gamma=cfg.gamma,
+        lmbda=p.gae_lambda,
+        lr=p.lr,
+        clip_epsilon=p.clip_epsilon,
+        entropy_coeff=p.entropy_coeff,
+        critic_coeff=p.critic_coeff,
+        epochs=p.epochs,
+        minibatches=p.minibatches,
+        max_grad_norm=p.max_grad_norm,
+        init_std=p.init_std,
+        seed=seed,
+    )
+    sample_gen = torch.Generator().manual_seed(seed + 2)
+    rollout = cfg.num_worlds * cfg.env_steps_per_batch * k  # agent steps of one batch, at most
+    return LearningGroup(
+        GROUP,
+        learner,
+        make_replay(rollout, sample_gen),
+        noise_gen=torch.Generator().manual_seed(seed + 1),
+        sample_gen=sample_gen,
+        updates_per_sim_step=0.0,
+        batch_size=cfg.batch_size,
+        learning_starts=0,
+        loss_log_every=1,
+        exploring=False,
+    )
+
+
 def explore(group: LearningGroup, start: float, end: float, decay_sim_steps: int) -> None:
     """The group explores this phase: Gaussian noise whose std falls linearly from `start` to
     `end` m/s^2 over `decay_sim_steps` of the phase (`explore_step`), then constant."""
@@ -267,6 +313,29 @@ def highway_rows(batch: TensorDictBase, residual: ResidualHighwayPolicy) -> Tens
             nxt.get((GROUP, "observation"))[keep],
         ],
         -1,
+    )
+
+
+def ppo_highway_rows(batch: TensorDictBase, learner: PPOHighwayLearner) -> Tensor:
+    """The learning highway agents' rollout of a batch [B, T, K] as PPO rows (GAE advantages
+    per agent slot; `PPOHighwayLearner.rollout_rows`), from the pre-squash samples `z` the
+    policy acted with."""
+    nxt = batch.get("next")
+    critic = "local" if learner.critic_dim == learner.obs_dim else "central"
+    obs, next_obs = batch.get((GROUP, "observation")), nxt.get((GROUP, "observation"))
+    valid = batch.get((GROUP, "mask")) & (batch.get("opponent") >= 0)  # [B, T, K]
+    left, exited = nxt.get((GROUP, "left_road")), nxt.get((GROUP, "exited"))
+    world_done = nxt.get("done").expand_as(valid)  # [B, T, 1] -> [B, T, K]
+    return learner.rollout_rows(
+        obs,
+        critic_observation(obs, batch.get("observation"), critic),
+        batch.get((GROUP, "z")),
+        nxt.get((GROUP, "reward")),
+        critic_observation(next_obs, nxt.get("observation"), critic),
+        valid,
+        left | world_done,
+        left & ~exited,
+        exited,
     )
 
 
@@ -329,10 +398,16 @@ class CoTrainRun:
             cfg, "ego", ego_obs_size(scen), scen.ego.accel_bounds_mps2, cfg.seed * 1000 + 10,
             cfg.ego_updates_per_sim_step, ego_init_weights(cfg, scen),
         )  # fmt: skip
-        self.hw = make_group(
-            cfg, GROUP, len(HIGHWAY_FEATURES), OFFSET_BOUNDS_MPS2, cfg.seed * 1000 + 20,
-            cfg.highway_updates_per_sim_step,
-        )  # fmt: skip
+        if cfg.highway_algorithm == "ppo":
+            self.hw = make_ppo_group(
+                cfg, len(HIGHWAY_FEATURES), ego_obs_size(scen), scen.sim.n_highway_agents,
+                cfg.seed * 1000 + 20,
+            )  # fmt: skip
+        else:
+            self.hw = make_group(
+                cfg, GROUP, len(HIGHWAY_FEATURES), OFFSET_BOUNDS_MPS2, cfg.seed * 1000 + 20,
+                cfg.highway_updates_per_sim_step,
+            )  # fmt: skip
         self.phases = cfg.phases()
         self.pool: list[dict[str, Tensor]] = []
         self.egos_kept: list[tuple[int, dict[str, Tensor]]] = []  # (phase index, weights)
@@ -412,9 +487,15 @@ class CoTrainRun:
         opponents: list[HighwayPolicy] = []
         if kind == "adversary":
             env.set_opponent_mix(1, 0.0)
-            explore(hw, cfg.highway_sigma_start, cfg.highway_sigma_end, length // 2)
             residual = ResidualHighwayPolicy(lambda obs: hw.act(obs)["action"], self.scen)
-            feeds = [(hw, functools.partial(highway_rows, residual=residual))]
+            if isinstance(hw.learner, PPOHighwayLearner):
+                hw.exploring = True  # PPO learns from its own samples
+                rows = functools.partial(ppo_highway_rows, learner=hw.learner)
+                residual = ResidualHighwayPolicy(hw.act, self.scen)
+            else:
+                explore(hw, cfg.highway_sigma_start, cfg.highway_sigma_end, length // 2)
+                rows = functools.partial(highway_rows, residual=residual)
+            feeds = [(hw, rows)]
             opponents = [residual]
         elif kind == "pretrain":
             env.set_opponent_mix(0, 1.0)
@@ -423,7 +504,7 @@ class CoTrainRun:
         else:
             env.set_opponent_mix(len(self.pool), cfg.scripted_fraction if self.pool else 1.0)
             explore(ego, cfg.ego_sigma_cotrain, cfg.ego_sigma_cotrain, 1)
-            opponents = [snapshot_policy(s, cfg.hidden, self.scen) for s in self.pool]
+            opponents = [self.snapshot(s) for s in self.pool]
             feeds = [(ego, transition_rows)]
         ego.explore_step = hw.explore_step = self.phase_done
         return JointPolicy(lambda obs: ego.act(obs)["action"], opponents), feeds
@@ -530,8 +611,8 @@ class CoTrainRun:
         if kind in ("pretrain", "ego"):
             self.keep_ego(self.phase_index)
         if kind == "adversary":
-            net = self.hw.learner.net
-            self.pool.append({k: v.detach().clone() for k, v in net.state_dict().items()})
+            weights = self.hw.learner.policy_state()["net"]
+            self.pool.append({k: v.detach().clone() for k, v in weights.items()})
             self.pool = self.pool[-cfg.pool_size :]
             save_highway_policy(out / "highway_policy.pt", self.pool[-1], cfg, scen)
             save_highway_policy(
@@ -543,6 +624,12 @@ class CoTrainRun:
         self.ep_steps[:] = 0
         self.checkpoint()
         self.next_ckpt = self._next_checkpoint()
+
+    def snapshot(self, weights: dict[str, Tensor]) -> HighwayPolicy:
+        """The greedy highway policy of pool weights of this run's highway learner."""
+        return snapshot_policy(
+            weights, self.cfg.hidden, self.scen, algorithm=self.cfg.highway_algorithm
+        )
 
     def close(self) -> None:
         for log in (self.ego_log, self.hw_log, self.loss_log):
@@ -567,7 +654,7 @@ class CoTrainRun:
             args = (net.greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds)
             evaluation["scripted"] = evaluate_policy(*args)
             if self.pool:
-                latest = snapshot_policy(self.pool[-1], cfg.hidden, scen)
+                latest = self.snapshot(self.pool[-1])
                 evaluation["latest_highway_policy"] = evaluate_policy(*args, highway_policy=latest)
         files.write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
         return evaluation
@@ -585,7 +672,7 @@ def select_ego(
     from marlmerge.evaluation.rollout import evaluate_policy
 
     opponents: list[HighwayPolicy | None] = [None] + [
-        snapshot_policy(s, cfg.hidden, scen) for s in pool
+        snapshot_policy(s, cfg.hidden, scen, algorithm=cfg.highway_algorithm) for s in pool
     ]
     failures: list[list[int]] = []
     for _, weights in candidates:

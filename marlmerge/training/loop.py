@@ -79,9 +79,12 @@ class LearningGroup:
 
     def learn(self) -> None:
         """Run the updates owed to the experience so far (skipped, not postponed, while the
-        replay holds fewer than `learning_starts` transitions)."""
+        replay holds fewer than `learning_starts` transitions). An on-policy learner (PPO)
+        learns from the rollout just stored, as many updates as it makes of one."""
         owed = max(int(self.experience_sim_steps * self.updates_per_sim_step) - self.updates, 0)
-        if len(self.replay) < self.learning_starts:
+        if self.learner.on_policy:
+            owed = len(self.replay)
+        elif len(self.replay) < self.learning_starts:
             self.updates += owed
             return
         losses = self.learner.learn(self.replay, owed, self.batch_size)  # [n <= owed]
