@@ -161,6 +161,14 @@ def _print_evaluation(ev: dict) -> None:
         f"truncation {ev['truncation_rate']:.1%}, mean merge time {ev['mean_merge_time_s']:.1f} s,"
         f" mean |acceleration| {ev['mean_abs_accel_mps2']:.2f} m/s^2"
     )
+    if "highway_hard_brake_share" in ev:
+        print(
+            "highway agents: own-fault collisions in "
+            f"{ev['highway_own_fault_collision_rate']:.1%} of episodes, hard braking "
+            f"{ev['highway_hard_brake_share']:.1%} and below half the limit "
+            f"{ev['highway_slow_share']:.1%} of agent steps, headway < 1 s "
+            f"{ev['highway_short_headway_share']:.1%}"
+        )
 
 
 def evaluate_cmd(args: argparse.Namespace) -> int:

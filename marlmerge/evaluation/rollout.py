@@ -15,6 +15,7 @@ import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder
+from marlmerge.evaluation.plausibility import HighwayTally, summarize_highway
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 from marlmerge.sim.streams import WorldSeed
 from marlmerge.views.torchrl_env import BatchedMergeEnv
@@ -45,9 +46,10 @@ def rollout_first_egos(
     steps whose command it overrode, 0 with the filter off) and, with `record`, each episode's
     `EpisodeTrajectory` (simulator-step samples up to its end). With `highway_policy`, the K
     highway agents of every world (`MultiAgentMergeEnv`) are driven by it instead of their
-    scripted profiles; the roads are the same either way. `road_seeds` (one per episode)
-    replace the seeds `seed + e`; `scenarios` (one per episode, differing from `scenario` only
-    in what `[sample]` draws) give each episode its own traffic and road.
+    scripted profiles (the roads are the same either way), and the records add the highway
+    agents' plausibility counts (`marlmerge.evaluation.plausibility`). `road_seeds` (one per
+    episode) replace the seeds `seed + e`; `scenarios` (one per episode, differing from
+    `scenario` only in what `[sample]` draws) give each episode its own traffic and road.
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
@@ -81,6 +83,7 @@ def rollout_first_egos(
         if record:
             recorder = TrajectoryRecorder(scenario, nw)
             env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
+        tally = None if highway_policy is None else HighwayTally(scenario, nw)
         outcome = np.zeros(nw, dtype=np.int64)
         interventions = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
@@ -91,6 +94,8 @@ def rollout_first_egos(
                 td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
             nxt = env.step(td).get("next")
             running = outcome == 0
+            if tally is not None:
+                tally.add(td, nxt, running)
             background = np.where(
                 running, env.core.state.background_collisions - background0, background
             )
@@ -109,6 +114,8 @@ def rollout_first_egos(
         rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
         rec["background_collisions"].append(background)
         rec["filter_interventions"].append(interventions)
+        for key, values in ({} if tally is None else tally.records()).items():
+            rec.setdefault(key, []).append(values)
         traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
 
@@ -139,6 +146,7 @@ def summarize(rec: dict[str, np.ndarray]) -> dict[str, float]:
         "mean_abs_accel_mps2": float(np.mean(rec["mean_abs_accel"])),
         "mean_total_reward": float(np.mean(rec["reward"])),
         "background_collisions_per_episode": float(np.mean(rec["background_collisions"])),
+        **summarize_highway(rec),
     }
 
 
