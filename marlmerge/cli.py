@@ -178,14 +178,10 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     scen = None
     if args.scenario:  # checked before torch and the policy are loaded
         scen = resolve_config(args.scenario)
-    from marlmerge.evaluation.registry import RULE_POLICIES, policy_from_spec
+    from marlmerge.evaluation.registry import policy_for_evaluation
     from marlmerge.evaluation.rollout import evaluate_policy
-    from marlmerge.learners.loading import load_scenario_of
 
-    if scen is None:
-        rule = args.policy in RULE_POLICIES
-        scen = resolve_config("default") if rule else load_scenario_of(args.policy)
-    policy = policy_from_spec(args.policy, scen)
+    policy, scen = policy_for_evaluation(args.policy, scen)
     highway = None
     if args.highway:
         from marlmerge.learners.highway import load_highway_policy
@@ -382,7 +378,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=train_cmd)
 
     e = sub.add_parser("evaluate", help="evaluate a saved policy greedily")
-    e.add_argument("policy", help="hold, idm, gap, or a run folder / policy.pt file")
+    e.add_argument(
+        "policy",
+        help="hold, idm, gap, a run folder / policy.pt file, or one policy as the grid names it "
+        "(gap@shield, quadq@shield:RUN)",
+    )
     e.add_argument("--episodes", type=_at_least(1), default=200)
     e.add_argument("--seed", type=_at_least(0), default=1_000_000, help="first held-out road seed")
     e.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")

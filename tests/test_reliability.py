@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from marlmerge import RampMergeEnv, parallel_env
+from marlmerge.cli import main
 from marlmerge.config import ScenarioConfig, bounds_table, to_dict
 from marlmerge.io import files
 from marlmerge.io.policy_file import read_policy, write_policy
@@ -254,6 +255,15 @@ def test_evaluate_refuses_a_bad_scenario_before_importing_torch(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
     assert out.stdout.split() == ["2", "False"], out.stderr[-2000:]
+
+
+def test_evaluate_takes_one_policy_in_the_grids_notation(capsys):
+    assert main(["evaluate", "gap@shield", "--episodes", "3", "--worlds", "3"]) == 0
+    assert "greedy evaluation on 3 held-out episodes" in capsys.readouterr().out
+    assert main(["evaluate", "gap@brave", "--episodes", "3"]) == 2
+    assert "unknown modifier @brave" in capsys.readouterr().err
+    assert main(["evaluate", "quadq:no/such/run", "--episodes", "3"]) == 2
+    assert "no policy.pt in 'no/such/run'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("bad", [None, "abc", [None], float("nan"), True])

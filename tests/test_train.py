@@ -118,6 +118,12 @@ def test_cli_train_refuses_to_overwrite_and_resumes(tmp_path, capsys):
     assert main(["train", "--out", str(out), "--no-progress", *sets]) == 2
     assert "--resume" in capsys.readouterr().err
     assert main(["evaluate", str(out), "--episodes", "4", "--worlds", "4"]) == 0
+    # one policy in the grid's notation: the same run behind the shield, with the safety filter
+    assert main(["evaluate", f"quadq@shield:{out}", "--episodes", "4", "--worlds", "4"]) == 0
+    assert "greedy evaluation on 4 held-out episodes" in capsys.readouterr().out
+    assert main(["evaluate", f"dqn:{out}", "--episodes", "4"]) == 2
+    assert "holds a quadq policy" in capsys.readouterr().err
+    assert main(["evaluate", f"quadq:{tmp_path}/r*", "--episodes", "4"]) == 0
     assert main(["plot", str(out)]) == 0
 
 

@@ -130,6 +130,29 @@ def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -
     return condition.replace(**changes) if changes else condition
 
 
+def policy_for_evaluation(
+    spec: str, scenario: ScenarioConfig | None
+) -> tuple[EgoPolicy, ScenarioConfig]:
+    """The policy `evaluate` runs and the scenario it meets: a rule, a run folder or
+    `policy.pt`, or one policy in the grid's notation (`gap@shield`, `quadq@filter:RUN`, one
+    run). `scenario` None: the learned policy's own scenario (rules: the default)."""
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.learners.loading import load_scenario_of
+
+    def own(run: str | None) -> ScenarioConfig:
+        return resolve_config("default") if run is None else load_scenario_of(run)
+
+    if spec in RULE_POLICIES or Path(spec).exists():
+        scenario = scenario or own(None if spec in RULE_POLICIES else spec)
+        return policy_from_spec(spec, scenario), scenario
+    parsed = parse_policy(spec)
+    if len(parsed.runs) > 1:
+        raise ValueError(f"policy {spec!r} names {len(parsed.runs)} runs; evaluate takes one")
+    run = parsed.runs[0] if parsed.runs else None
+    scenario = scenario_for(parsed, run, scenario or own(run))
+    return make_policy(parsed, run, scenario), scenario
+
+
 def policy_from_spec(spec: str, scenario: ScenarioConfig) -> EgoPolicy:
     """`hold`, `idm`, `gap`, or a run folder / `policy.pt` of any learner."""
     if spec in RULE_POLICIES:
