@@ -1,0 +1,232 @@
+"""The tables of docs/robustness.md from the two grids' episodes.csv.
+
+    python benchmarks/robustness_tables.py runs/robustness_grid/episodes.csv \
+        runs/robustness_sensing/episodes.csv
+
+Prints, in Markdown: the main table (36 conditions, perfect sensing; collisions by set), the
+second held-out set alone, realistic sensing, the core's safety filter and the targets of the
+best configuration. Conditions are grouped by their label: `heldout ...` is the first
+held-out set, `heldout2 ...` the second, the rest the grid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+NAMES = {
+    "gap": "gap acceptance",
+    "paper": "quadratic Q, paper recipe",
+    "paper@shield": "paper recipe behind the shield",
+    "robust": "`robust`",
+    "robust@shield": "`robust` behind the shield",
+    "robust2": "`robust2` (tuned on the grid)",
+    "robust_dqn": "DQN, `robust_dqn`",
+    "robust_td3": "TD3, `robust_td3`",
+    "robust3": "`robust3`",
+    "robust3@shield": "`robust3` behind the shield",
+    "robust4": "`robust4`",
+    "robust4@shield": "**`robust4` behind the shield**",
+}
+"""The policies of the tables, in order, and how the tables name them (the `@filter` variants
+are reported in one sentence)."""
+OUTCOMES = ("success", "collision", "truncation")
+SECOND_ROUND = ("robust3", "robust3@shield", "robust4", "robust4@shield")
+BEST = "robust4@shield"
+
+
+def load(path: str) -> dict[str, dict[str, np.ndarray]]:
+    """policy -> column -> values [n] (run and condition as strings, the rest as floats)."""
+    cols: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            c = cols[r["policy"]]
+            c["run"].append(Path(r["run"]).name)
+            c["condition"].append(r["condition"])
+            for k in ("success", "collision", "truncation", "time_to_merge_s", "max_abs_jerk_mps3"):
+                c[k].append(float(r[k]))
+    return {p: {k: np.array(v) for k, v in c.items()} for p, c in cols.items()}
+
+
+def subset(d: dict[str, np.ndarray], keep: np.ndarray) -> dict[str, np.ndarray]:
+    return {k: v[keep] for k, v in d.items()}
+
+
+def which_set(conditions: np.ndarray) -> np.ndarray:
+    """'grid', 'heldout' or 'heldout2' for each condition label."""
+    first = np.char.partition(conditions.astype(str), " ")[:, 0]
+    return np.where(np.isin(first, ("heldout", "heldout2")), first, "grid")
+
+
+def in_set(d: dict[str, np.ndarray] | None, name: str | None) -> dict[str, np.ndarray] | None:
+    """`d` restricted to one condition set (None: all of it)."""
+    if d is None or name is None:
+        return d
+    return subset(d, which_set(d["condition"]) == name)
+
+
+def nice(cond: str) -> str:
+    return cond.replace("heldout2 ", "held-out 2 ").replace("heldout ", "held-out ")
+
+
+def worst(d: dict[str, np.ndarray], single: bool) -> tuple[str, str]:
+    """The worst condition pooled ('label 98.2 %') and the worst (run, condition)."""
+    conds = np.unique(d["condition"])
+    pooled = {c: d["success"][d["condition"] == c].mean() for c in conds}
+    wc = min(pooled, key=pooled.get)
+    cell = f"{nice(wc)} {100 * pooled[wc]:.1f} %"
+    if single:
+        return cell, "(one policy)"
+    runs = {
+        (run, c): d["success"][(d["run"] == run) & (d["condition"] == c)].mean()
+        for run in np.unique(d["run"])
+        for c in conds
+    }
+    (run, c), s = min(runs.items(), key=lambda kv: kv[1])
+    seed = run.rsplit("_", 1)[-1]
+    where = "there" if c == wc else f"in {nice(c)}"
+    return cell, f"{seed} {where}: {100 * s:.1f} %"
+
+
+def pct(x: np.ndarray, digits: int = 2) -> str:
+    return f"{100 * x.mean():.{digits}f} %"
+
+
+def merge_time(d: dict[str, np.ndarray]) -> float:
+    return float(np.nanmean(d["time_to_merge_s"]))
+
+
+def jerk(d: dict[str, np.ndarray]) -> float:
+    return float(np.nanmean(d["max_abs_jerk_mps3"]))
+
+
+def main_table(g: dict) -> list[str]:
+    out = [
+        "| policy | grid | held-out 1 | held-out 2 | all 36: success / collision / truncation "
+        "| worst cell | worst seed in a cell | time to merge | max jerk |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for p, name in NAMES.items():
+        if p not in g:
+            continue
+        d = g[p]
+        sets = which_set(d["condition"])
+        by_set = [pct(d["collision"][sets == s]) for s in ("grid", "heldout", "heldout2")]
+        rates = " / ".join(f"{100 * d[k].mean():.2f}" for k in OUTCOMES)
+        cell, seed = worst(d, p.startswith("gap"))
+        out.append(
+            f"| {name} | {' | '.join(by_set)} | {rates} % | {cell} | {seed} | "
+            f"{merge_time(d):.1f} s | {jerk(d):.1f} m/s³ |"
+        )
+    return out
+
+
+def second_set_table(g: dict) -> list[str]:
+    two = {p: subset(d, which_set(d["condition"]) == "heldout2") for p, d in g.items()}
+    out = [
+        f"On the second held-out set alone, against gap acceptance's merge time there "
+        f"({merge_time(two['gap']):.1f} s) and the paper recipe's max jerk "
+        f"({jerk(g['paper']):.1f} m/s³):",
+        "",
+        "| policy | success | collision | worst cell | worst seed in a cell | time to merge | "
+        "max jerk |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for p in SECOND_ROUND:
+        if p in two:
+            d = two[p]
+            cell, seed = worst(d, False)
+            out.append(
+                f"| {NAMES[p]} | {pct(d['success'])} | {pct(d['collision'])} | {cell} | {seed} | "
+                f"{merge_time(d):.1f} s | {jerk(d):.1f} m/s³ |"
+            )
+    return out
+
+
+def sensing_table(s: dict) -> list[str]:
+    out = [
+        "| policy | success | collision | truncation | worst cell | worst seed in a cell |",
+        "|---|---|---|---|---|---|",
+    ]
+    for p, name in NAMES.items():
+        if p in s:
+            d = s[p]
+            cell, seed = worst(d, p.startswith("gap"))
+            out.append(
+                f"| {name} | {pct(d['success'])} | {pct(d['collision'])} | "
+                f"{pct(d['truncation'])} | {cell} | {seed} |"
+            )
+    return out
+
+
+def filter_sentence(g: dict) -> list[str]:
+    pairs = [(p, f"{p}@filter") for p in ("gap", "paper", "robust", "robust2")]
+    parts = [
+        f"{pct(g[a]['collision'])} → {pct(g[b]['collision'])} ({a})"
+        for a, b in pairs
+        if a in g and b in g
+    ]
+    trunc = pct(g["gap@filter"]["truncation"], 1) if "gap@filter" in g else "?"
+    return [
+        "The core's safety filter, all 36 conditions, perfect sensing: collisions "
+        + ", ".join(parts)
+        + f"; gap acceptance behind it is truncated in {trunc}."
+    ]
+
+
+def targets(g: dict, s: dict) -> list[str]:
+    if BEST not in g:
+        return []
+    rows = []
+    for label, keep in (("all 36 conditions", None), ("second held-out set only", "heldout2")):
+        d, gap, sd = (in_set(x, keep) for x in (g[BEST], g["gap"], s.get(BEST)))
+        cell, seed = worst(d, False)
+        rows.append(
+            (
+                label,
+                pct(d["collision"]),
+                pct(d["success"]),
+                cell,
+                seed,
+                f"{merge_time(d):.1f} vs {merge_time(gap):.1f} s",
+                f"{jerk(d):.1f} vs {jerk(g['paper']):.1f} m/s³",
+                pct(sd["collision"]) if sd is not None else "-",
+            )
+        )
+    names = (
+        "pooled collisions (target ≤ 0.1 %)",
+        "success (target ≥ 99.5 %)",
+        "worst cell, pooled (target ≥ 99 %)",
+        "worst seed in a cell (target ≥ 98 %)",
+        "merge time vs gap acceptance's",
+        "max jerk vs the paper recipe's",
+        "realistic sensing collisions (target ≤ 0.5 %)",
+    )
+    out = [f"| {BEST} | {rows[0][0]} | {rows[1][0]} |", "|---|---|---|"]
+    for i, n in enumerate(names, start=1):
+        out.append(f"| {n} | {rows[0][i]} | {rows[1][i]} |")
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("grid", help="the perfect-sensing grid's episodes.csv")
+    ap.add_argument("sensing", help="the realistic-sensing grid's episodes.csv")
+    args = ap.parse_args()
+    g, s = load(args.grid), load(args.sensing)
+    for block in (
+        main_table(g),
+        second_set_table(g),
+        sensing_table(s),
+        filter_sentence(g),
+        targets(g, s),
+    ):
+        print("\n".join(block), end="\n\n")
+
+
+if __name__ == "__main__":
+    main()
