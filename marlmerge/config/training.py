@@ -133,6 +133,24 @@ class Td3Config:
 
 
 @dataclass(frozen=True)
+class LevelsConfig:
+    """`[levels]`: prioritised replay of the traffic where the ego fails
+    (`marlmerge.training.levels`, as in PLR); needs a scenario with `[sample]`."""
+
+    replay_fraction: float = num(0.0, 0.0, 1.0)
+    """Share of new roads that replay a level from the buffer; 0: off (the plain `[sample]`
+    draws, bit for bit)."""
+    capacity: int = num(1000, 1, 1_000_000)
+    """Levels kept; a full buffer drops its lowest-scored level for a fresh draw."""
+    min_levels: int = num(64, 1, 1_000_000)
+    """Replay starts once this many levels have a finished ego."""
+    temperature: float = positive(0.3, 100.0)
+    """Rank prioritisation: P ~ (1 / rank) ** (1 / temperature) (lower: greedier)."""
+    staleness: float = num(0.1, 0.0, 1.0)
+    """Weight of the staleness term (levels not chosen for long come back)."""
+
+
+@dataclass(frozen=True)
 class TrainConfig(RunConfig):
     """One run training the ego against scripted traffic (`marlmerge train`)."""
 
@@ -154,6 +172,7 @@ class TrainConfig(RunConfig):
     (`[td3]`). All use the shared settings above."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
+    levels: LevelsConfig = field(default_factory=LevelsConfig)
 
     def __post_init__(self) -> None:
         self._check()

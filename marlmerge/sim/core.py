@@ -34,6 +34,7 @@ from marlmerge.sim.state import EgoGaps, Rollout, Roster, StepEvents, TrafficSta
 from marlmerge.sim.streams import (
     CHUNK,
     SCENARIO_STREAM,
+    ScenarioSource,
     Streams,
     check_world_scenarios,
     draw_world_scenario,
@@ -108,15 +109,23 @@ class TrafficCore:
         seed: int | Sequence[int] | None = None,
         parallel: bool | None = None,
         scenarios: Sequence[ScenarioConfig] | None = None,
+        scenario_source: ScenarioSource | None = None,
     ):
         """scenarios: one per world, the traffic and road world b runs (each may differ from
-        `cfg` only in what `[sample]` draws, `WORLD_KEYS`); None: every world runs `cfg`."""
+        `cfg` only in what `[sample]` draws, `WORLD_KEYS`); None: every world runs `cfg`.
+        scenario_source: with `[sample]`, chooses each new road's traffic in place of the
+        world's own draw (`ScenarioSource`); `world_tag` [B] holds the tag of its choice."""
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         check_world_scenarios(cfg, batch_size, scenarios)
         self.cfg = cfg
         self.fixed_scenarios = scenarios is not None
         """Every world runs a scenario it was given (`scenarios`)."""
+        if scenario_source is not None and not cfg.sample.active:
+            raise ValueError("scenario_source needs a scenario with [sample] ranges to replace")
+        self.scenario_source = scenario_source
+        self.world_tag = np.full(batch_size, -1, dtype=np.int64)
+        """[B] the tag `scenario_source` gave each world's current traffic (-1: none)."""
         self.batch_size = batch_size
         row = L.pack_params(cfg)
         self.params = np.tile(row, (batch_size, 1))  # [B, P]: each world's parameters
@@ -312,7 +321,11 @@ class TrafficCore:
 
     def _draw_scenario(self, b: int) -> None:
         """World `b` draws its traffic (`[sample]`) for the road it is about to get."""
-        cfg = draw_world_scenario(self.cfg, self.streams.gens[b][SCENARIO_STREAM])
+        g = self.streams.gens[b][SCENARIO_STREAM]
+        if self.scenario_source is None:
+            cfg = draw_world_scenario(self.cfg, g)
+        else:
+            cfg, self.world_tag[b] = self.scenario_source.draw(self.cfg, b, g)
         self._set_world_scenario(b, cfg)
 
     def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:
@@ -655,6 +668,7 @@ class TrafficCore:
             "arrays": {name: getattr(self, name).copy() for name in _ARRAYS},
             "generators": [[g.bit_generator.state for g in gens] for gens in self.streams.gens],
             "served_k": self._served_k,
+            "world_tag": self.world_tag.copy(),
             "world_scenarios": (
                 [to_dict(c) for c in self.streams.cfgs]
                 if self.cfg.sample.active or self.fixed_scenarios
@@ -696,6 +710,7 @@ class TrafficCore:
             for g, s in zip(gens, states, strict=True):
                 g.bit_generator.state = s
         self._served_k = int(saved["served_k"])
+        self.world_tag[:] = saved.get("world_tag", -1)
         for b, world in enumerate(saved.get("world_scenarios", [])):
             self._set_world_scenario(b, from_dict(ScenarioConfig, world))
         self._check_lanes()

@@ -18,7 +18,7 @@ per-world `SeedSequence` is used as it is (the grid keys its roads that way).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -294,9 +294,14 @@ DRAWN_AFTER_MIX = (
 PURE_MIXES = ("mix_neutral", "mix_cooperative", "mix_adversarial")
 
 
-def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> ScenarioConfig:
-    """A world's traffic drawn from `base.sample` (see `marlmerge.config.SampleConfig`): every
-    range drawn in a fixed order, so a world's scenarios depend on its seed alone."""
+WorldDraw = tuple[dict[str, float | None], str | None]
+"""What a world draws from `[sample]`: each key's value (None: not sampled) and the pure
+driver mix (None: the drawn or configured mix)."""
+
+
+def draw_world_values(base: ScenarioConfig, g: np.random.Generator) -> WorldDraw:
+    """A world's draw from `base.sample` (see `marlmerge.config.SampleConfig`): every range
+    drawn in a fixed order, so a world's draws depend on its seed alone."""
     smp = base.sample
 
     def draw(key: str) -> float | None:
@@ -308,7 +313,25 @@ def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> Scenari
     if smp.pure_mix_fraction > 0.0 and g.uniform() < smp.pure_mix_fraction:
         pure = PURE_MIXES[int(g.integers(3))]
     values |= {key: draw(key) for key in DRAWN_AFTER_MIX}
-    return base.replace(**world_changes(base, values, pure))
+    return values, pure
+
+
+class ScenarioSource(Protocol):
+    """Chooses the traffic of a world's next road in place of its own `[sample]` draw (e.g. a
+    training run replaying the conditions where its ego failed). It must draw only from `g`
+    (the world's scenario stream), so runs stay reproducible."""
+
+    def draw(
+        self, base: ScenarioConfig, world: int, g: np.random.Generator
+    ) -> tuple[ScenarioConfig, int]:
+        """The scenario world `world` runs next (differing from `base` only in `WORLD_KEYS`)
+        and a tag for it (>= 0; the core reports it, `TrafficCore.world_tag`)."""
+        ...
+
+
+def draw_world_scenario(base: ScenarioConfig, g: np.random.Generator) -> ScenarioConfig:
+    """A world's traffic drawn from `base.sample` (`draw_world_values`)."""
+    return base.replace(**world_changes(base, *draw_world_values(base, g)))
 
 
 def world_changes(

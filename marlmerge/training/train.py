@@ -37,7 +37,9 @@ from marlmerge.learners.base import Learner
 from marlmerge.learners.loading import make_learner as make_peer_learner
 from marlmerge.learners.quadq import GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
+from marlmerge.sim import OUTCOME_SUCCESS
 from marlmerge.training.checkpoint import open_checkpoint
+from marlmerge.training.levels import LevelReplay
 from marlmerge.training.logs import (
     EGO_FIELDS,
     LOSS_FIELDS,
@@ -70,8 +72,19 @@ reward terms, `jerk` added)."""
 
 
 def make_env(cfg: TrainConfig) -> BatchedMergeEnv:
-    """B worlds of the run's scenario, one ego each, seeded from `cfg.seed`."""
-    return BatchedMergeEnv(cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed)
+    """B worlds of the run's scenario, one ego each, seeded from `cfg.seed`; with `[levels]`
+    each new road's traffic comes from the run's `LevelReplay` (`env.core.scenario_source`)."""
+    levels = None
+    if cfg.levels.replay_fraction > 0.0:
+        if not run_scenario(cfg).sample.active:
+            raise ValueError(
+                f"levels.replay_fraction = {cfg.levels.replay_fraction} needs a scenario with "
+                f"[sample] ranges; {cfg.scenario!r} has none"
+            )
+        levels = LevelReplay(cfg.levels)
+    return BatchedMergeEnv(
+        cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed, scenario_source=levels
+    )
 
 
 def make_learner(
@@ -196,10 +209,13 @@ def train(
     scen, k = env.cfg, env.cfg.sim.action_repeat
     ego = make_ego_group(cfg, scen, env.observation_spec["observation"].shape[-1])
     sim_steps = 0
+    levels = env.core.scenario_source
     if ckpt is not None:
         ego.load_state_dict(ckpt["group"])
         env.load_sim_state(ckpt["env"])
         sim_steps = ckpt["sim_steps"]
+        if levels is not None:
+            levels.load_state_dict(ckpt["levels"])
     ego.explore_step = sim_steps
     logs = RunLogs.open(out, cfg, k * scen.sim.dt_s, ckpt)
     ego.on_loss = lambda update, loss: logs.loss.write([update, sim_steps, loss])
@@ -233,6 +249,7 @@ def train(
                 "tracker_steps": logs.tracker.steps.copy(),
                 "loss_rows": logs.loss.rows,
                 "ego_rows": logs.egos.rows,
+                "levels": None if levels is None else levels.state_dict(),
             },
         )
 
@@ -241,6 +258,8 @@ def train(
         sim_steps += n_sim
         ego.explore_step = sim_steps
         recent = (recent + logs.tracker.update(batch, sim_steps, k, logs.egos))[-200:]
+        if levels is not None:
+            score_levels(levels, batch)
         _show(bar, n_sim, logs.tracker.egos, recent)
 
     def after_updates() -> bool:
@@ -270,6 +289,16 @@ def train(
     )  # fmt: skip
     _write_timing(out, result, k)
     return result
+
+
+def score_levels(levels: LevelReplay, batch) -> None:
+    """The egos that finished in a batch [B, T] score the levels they drove (failure: a
+    collision or a truncation)."""
+    nxt = batch.get("next")
+    done = nxt.get("done").reshape(-1).numpy()
+    tags = nxt.get("scenario_tag").reshape(-1).numpy()[done]
+    outcome = nxt.get("outcome").reshape(-1).numpy()[done]
+    levels.update(tags, outcome != OUTCOME_SUCCESS)
 
 
 def ego_rows(ego: LearningGroup, batch) -> torch.Tensor:

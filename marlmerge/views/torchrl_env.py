@@ -46,6 +46,7 @@ from marlmerge.sim import (
 )
 from marlmerge.sim.action import as_actions
 from marlmerge.sim.reward import EGO_TERMS, total_reward
+from marlmerge.sim.streams import ScenarioSource
 
 
 class BatchedMergeEnv(EnvBase):
@@ -61,13 +62,18 @@ class BatchedMergeEnv(EnvBase):
         overrides: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
         scenarios: Sequence[ScenarioConfig] | None = None,
+        scenario_source: ScenarioSource | None = None,
     ):
         """seed: one int for the batch, or one per world (`marlmerge.sim.streams`); scenarios:
-        one per world, the traffic and road it runs (`TrafficCore`)."""
+        one per world, the traffic and road it runs; scenario_source: chooses each new road's
+        traffic in place of `[sample]`'s draw, and the root key `"scenario_tag"` [B, 1] int64
+        reports the tag of its choice (`TrafficCore`)."""
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.cfg = resolve_config(config, **(overrides or {}))
         self.num_worlds = num_worlds
-        self.core = TrafficCore(self.cfg, batch_size=num_worlds, seed=seed, scenarios=scenarios)
+        self.core = TrafficCore(
+            self.cfg, num_worlds, seed, scenarios=scenarios, scenario_source=scenario_source
+        )
         self.recorder: Callable[[Rollout], None] | None = None
         """Called with every env step's `Rollout` (evaluation records trajectories from its
         per-simulator-step ego trace)."""
@@ -87,6 +93,10 @@ class BatchedMergeEnv(EnvBase):
         )
         if self.cfg.ego.safety_filter:
             self.observation_spec["filter_interventions"] = Unbounded(
+                (b, 1), dtype=torch.int64, device=device
+            )
+        if scenario_source is not None:
+            self.observation_spec["scenario_tag"] = Unbounded(
                 (b, 1), dtype=torch.int64, device=device
             )
         self.action_spec = Bounded(lo, hi, (b, 1), dtype=torch.float32, device=device)
@@ -184,4 +194,6 @@ class BatchedMergeEnv(EnvBase):
             out["filter_interventions"] = col(
                 self.core.state.filter_interventions.copy(), torch.int64
             )
+        if self.core.scenario_source is not None:
+            out["scenario_tag"] = col(self.core.world_tag.copy(), torch.int64)
         return out

@@ -1,0 +1,135 @@
+"""Prioritised replay of traffic conditions (levels) where the ego fails, as in PLR.
+
+A scenario with `[sample]` gives every world a fresh draw of traffic (a level: the drawn values
+of the `[sample]` keys) for each new road. With `[levels] replay_fraction > 0` a training run
+(`marlmerge.training.train`) hands the core a `LevelReplay` (`TrafficCore(scenario_source=...)`):
+each new road replays a level from its buffer with probability `replay_fraction`, else it is a
+fresh draw that joins the buffer. Every finished ego scores its level: the level's failure rate
+(collisions and truncations, `(failures + 1/2) / (episodes + 1)`). A level is replayed with the
+probability of Jiang et al.'s Prioritized Level Replay (ICML 2021):
+
+    P = (1 - staleness) * P_score + staleness * P_stale
+    P_score ~ (1 / rank of its score) ** (1 / temperature)
+    P_stale ~ draws since the level was last chosen
+
+over the levels scored at least once; a full buffer drops its lowest-scored level (the oldest
+among equals) for a fresh draw. Every choice is drawn from the world's scenario stream, so a run
+is reproducible and resumes bit for bit (`state_dict`); with `replay_fraction = 0` the draws are
+those of `[sample]` itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.config.training import LevelsConfig
+from marlmerge.sim.streams import WorldDraw, draw_world_values, world_changes
+
+
+@dataclass
+class Level:
+    draw: WorldDraw
+    episodes: int = 0
+    failures: int = 0
+    last_chosen: int = 0
+    """The replay's draw count when the level was last chosen (or added)."""
+
+    @property
+    def score(self) -> float:
+        return (self.failures + 0.5) / (self.episodes + 1.0)
+
+
+class LevelReplay:
+    """The buffer of levels, their scores and the choice of each new road's level (see the
+    module docstring); a `marlmerge.sim.streams.ScenarioSource`."""
+
+    def __init__(self, cfg: LevelsConfig) -> None:
+        self.cfg = cfg
+        self.levels: dict[int, Level] = {}
+        self.next_id = 0
+        self.draws = 0
+
+    # ---- the scenario source -----------------------------------------------------------------
+
+    def draw(
+        self, base: ScenarioConfig, world: int, g: np.random.Generator
+    ) -> tuple[ScenarioConfig, int]:
+        """The next road's traffic for a world and the level's id (its tag)."""
+        self.draws += 1
+        scored = [i for i, lv in self.levels.items() if lv.episodes > 0]
+        replay = (
+            self.cfg.replay_fraction > 0.0
+            and len(scored) >= self.cfg.min_levels
+            and g.uniform() < self.cfg.replay_fraction
+        )
+        if replay:
+            tag = scored[int(g.choice(len(scored), p=self.probabilities(scored)))]
+            level = self.levels[tag]
+            level.last_chosen = self.draws
+        else:
+            tag, level = self._add(draw_world_values(base, g))
+        return base.replace(**world_changes(base, *level.draw)), tag
+
+    def probabilities(self, ids: list[int]) -> np.ndarray:
+        """PLR's replay distribution over the levels `ids` (scored ones)."""
+        scores = np.array([self.levels[i].score for i in ids])
+        ranks = np.empty(len(ids))
+        ranks[np.argsort(-scores, kind="stable")] = np.arange(1, len(ids) + 1)
+        p_score = (1.0 / ranks) ** (1.0 / self.cfg.temperature)
+        p_score /= p_score.sum()
+        stale = np.array([self.draws - self.levels[i].last_chosen for i in ids], dtype=float)
+        p_stale = stale / stale.sum() if stale.sum() > 0 else np.full(len(ids), 1.0 / len(ids))
+        return (1.0 - self.cfg.staleness) * p_score + self.cfg.staleness * p_stale
+
+    def _add(self, draw: WorldDraw) -> tuple[int, Level]:
+        if len(self.levels) >= self.cfg.capacity:
+            drop = min(self.levels, key=lambda i: (self.levels[i].score, i))
+            del self.levels[drop]
+        tag, self.next_id = self.next_id, self.next_id + 1
+        self.levels[tag] = Level(draw, last_chosen=self.draws)
+        return tag, self.levels[tag]
+
+    # ---- scores ------------------------------------------------------------------------------
+
+    def update(self, tags: np.ndarray, failed: np.ndarray) -> None:
+        """Finished egos: their levels' tags [n] and whether each failed [n]; levels dropped
+        meanwhile are skipped."""
+        for tag, fail in zip(tags.tolist(), failed.tolist(), strict=True):
+            level = self.levels.get(int(tag))
+            if level is not None:
+                level.episodes += 1
+                level.failures += int(fail)
+
+    def summary(self) -> dict[str, float]:
+        """Buffer size and the mean failure score of the buffer and of its top tenth."""
+        scores = np.sort([lv.score for lv in self.levels.values() if lv.episodes > 0])[::-1]
+        top = scores[: max(len(scores) // 10, 1)]
+        return {
+            "levels": len(self.levels),
+            "scored": len(scores),
+            "mean_score": float(scores.mean()) if len(scores) else 0.0,
+            "top_tenth_score": float(top.mean()) if len(scores) else 0.0,
+        }
+
+    # ---- checkpoints -------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "next_id": self.next_id,
+            "draws": self.draws,
+            "levels": [
+                [i, lv.draw[0], lv.draw[1], lv.episodes, lv.failures, lv.last_chosen]
+                for i, lv in self.levels.items()
+            ],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.next_id, self.draws = state["next_id"], state["draws"]
+        self.levels = {
+            int(i): Level((dict(values), pure), episodes, failures, last)
+            for i, values, pure, episodes, failures, last in state["levels"]
+        }

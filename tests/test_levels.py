@@ -1,0 +1,107 @@
+"""Prioritised level replay: the replay distribution, the core's scenario source, training with it
+and its exact resume."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from marlmerge.config.presets import resolve_config
+from marlmerge.config.training import LevelsConfig
+from marlmerge.io import files
+from marlmerge.sim.core import TrafficCore
+from marlmerge.training.levels import LevelReplay
+from marlmerge.training.train import load_train_config, train
+
+
+def _replay(**kw):
+    return LevelReplay(LevelsConfig(**{"replay_fraction": 0.5, "min_levels": 1, **kw}))
+
+
+def test_replay_ranks_by_failure_and_brings_stale_levels_back():
+    """Three scored levels with failure scores 5.5/6, 1.5/6 and 0.5/6: with no staleness the
+    replay probabilities are (1/rank)^(1/T) normalised; staleness mixes in the draws since
+    each was chosen."""
+    replay = _replay(temperature=0.5, staleness=0.0)
+    scen = resolve_config("robust_mix")
+    g = np.random.default_rng(0)
+    tags = [replay.draw(scen, 0, g)[1] for _ in range(3)]  # no scored level yet: fresh draws
+    assert tags == [0, 1, 2] and replay.draws == 3
+    for tag, fails in zip(tags, (5, 1, 0), strict=True):
+        replay.update(np.full(5, tag), np.arange(5) < fails)
+    p = replay.probabilities([0, 1, 2])
+    want = np.array([1.0, 1 / 4, 1 / 9])
+    assert np.allclose(p, want / want.sum())
+    stale = _replay(temperature=0.5, staleness=1.0)
+    stale.load_state_dict(replay.state_dict())
+    assert np.allclose(stale.probabilities([0, 1, 2]), np.array([2.0, 1.0, 0.0]) / 3.0)
+    # a full buffer drops its lowest-scored level for a fresh draw
+    small = _replay(capacity=3, replay_fraction=0.0)
+    small.load_state_dict(replay.state_dict())
+    _, tag = small.draw(scen, 0, g)
+    assert tag == 3 and sorted(small.levels) == [0, 1, 3]
+    small.update(np.array([2, 3]), np.array([True, False]))  # a dropped level is skipped
+    assert small.levels[3].episodes == 1
+
+
+def test_off_or_before_the_first_scores_the_core_draws_as_without_it():
+    """A replay with replay_fraction = 0, or before min_levels levels are scored, draws each
+    world's traffic from its own stream exactly as `[sample]` does."""
+    scen = resolve_config("robust_mix4")
+    plain = TrafficCore(scen, batch_size=4, seed=3)
+    for source in (_replay(replay_fraction=0.0), _replay(min_levels=10_000)):
+        core = TrafficCore(scen, batch_size=4, seed=3, scenario_source=source)
+        for c in (plain, core):
+            c.reset(seed=3)
+            c.next_ego(np.ones(4, dtype=bool))  # resample_every_egos = 1: new traffic
+        assert all(core.world_scenario(b) == plain.world_scenario(b) for b in range(4))
+        assert list(core.world_tag) == list(range(source.next_id - 4, source.next_id))
+        assert np.array_equal(core.state_dict()["arrays"]["vf"], plain.state_dict()["arrays"]["vf"])
+    with pytest.raises(ValueError, match=r"\[sample\]"):
+        TrafficCore(resolve_config("default"), scenario_source=_replay())
+
+
+def test_replayed_levels_are_the_failing_ones():
+    """Levels scored as failing come back far more often than their share of the buffer."""
+    scen = resolve_config("robust_mix")
+    replay = _replay(replay_fraction=0.9, staleness=0.0, temperature=0.3)
+    g = np.random.default_rng(1)
+    for _ in range(40):
+        _, tag = replay.draw(scen, 0, g)
+        replay.update(np.array([tag]), np.array([tag % 10 == 0]))  # every tenth level fails
+    chosen = [replay.draw(scen, 0, g)[1] for _ in range(400)]
+    replayed = [t for t in chosen if t < 40]
+    assert len(replayed) > 300
+    assert np.mean([t % 10 == 0 for t in replayed]) > 0.8  # 4 of 40 levels fail
+
+
+TINY = dict(
+    scenario="robust_mix4",
+    total_sim_steps=8_192,
+    num_worlds=8,
+    learning_starts=256,
+    replay_capacity=5_000,
+    update_path="fast",
+    checkpoint_every_sim_steps=2_048,
+    eval_episodes=4,
+    eval_worlds=4,
+    **{"levels.replay_fraction": 0.5, "levels.min_levels": 8},
+)
+
+
+@pytest.mark.slow
+def test_training_with_level_replay_resumes_bit_for_bit(tmp_path):
+    cfg = load_train_config("quick", **TINY)
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    train(cfg, full, progress=False)
+    train(cfg, cut, progress=False, stop_after_sim_steps=5_000)
+    train(cfg, cut, resume=True, progress=False)
+    assert (full / "egos.csv").read_text() == (cut / "egos.csv").read_text()
+    a, b = (files.load(d / "policy.pt")["policy_state"]["net"] for d in (full, cut))
+    assert all(np.array_equal(a[k].numpy(), b[k].numpy()) for k in a)
+    levels = files.load(full / "checkpoint.pt")["levels"]
+    scored = [lv for lv in levels["levels"] if lv[3] > 0]
+    assert len(scored) >= 8 and levels["draws"] > len(levels["levels"])  # levels were replayed
+    with open(full / "egos.csv", newline="") as fh:
+        egos = sum(1 for _ in csv.DictReader(fh))
+    assert sum(lv[3] for lv in levels["levels"]) <= egos
