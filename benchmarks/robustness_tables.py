@@ -212,6 +212,40 @@ def targets(g: dict, s: dict) -> list[str]:
     return out
 
 
+RESULTS_NAMES = {
+    "gap": "gap acceptance",
+    "paper": "quadratic Q, paper recipe",
+    "paper@shield": "quadratic Q, paper recipe, shielded",
+    "robust": "quadratic Q, `robust`",
+    "robust3": "quadratic Q, `robust3`",
+    "robust3@shield": "quadratic Q, `robust3`, shielded",
+    "robust4@shield": "quadratic Q, `robust4`, shielded",
+    "robust_dqn": "DQN, `robust_dqn`",
+    "robust_td3": "TD3, `robust_td3`",
+}
+"""The rows of the short table in docs/results.md."""
+
+
+def results_table(g: dict, s: dict) -> list[str]:
+    out = [
+        "| policy | grid | held-out 1 | held-out 2 | worst seed in a cell | max jerk | "
+        "with realistic sensing |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for p, name in RESULTS_NAMES.items():
+        if p in g and p in s:
+            d = g[p]
+            sets = which_set(d["condition"])
+            by_set = [pct(d["collision"][sets == x]) for x in ("grid", "heldout", "heldout2")]
+            cell, seed = worst(d, p.startswith("gap"))
+            seed_pct = cell.rsplit(" ", 2)[-2] if p.startswith("gap") else seed.split(": ")[-1]
+            out.append(
+                f"| {name} | {' | '.join(by_set)} | {seed_pct.removesuffix(' %')} % | "
+                f"{jerk(d):.1f} m/s³ | {pct(s[p]['collision'])} |"
+            )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("grid", help="the perfect-sensing grid's episodes.csv")
@@ -224,6 +258,7 @@ def main() -> None:
         sensing_table(s),
         filter_sentence(g),
         targets(g, s),
+        results_table(g, s),
     ):
         print("\n".join(block), end="\n\n")
 
