@@ -96,6 +96,12 @@ def pct(x: np.ndarray, digits: int = 2) -> str:
     return f"{100 * x.mean():.{digits}f} %"
 
 
+def collisions_by_set(d: dict[str, np.ndarray]) -> str:
+    """'grid | held-out 1 | held-out 2' collision rates."""
+    sets = which_set(d["condition"])
+    return " | ".join(pct(d["collision"][sets == x]) for x in ("grid", "heldout", "heldout2"))
+
+
 def merge_time(d: dict[str, np.ndarray]) -> float:
     return float(np.nanmean(d["time_to_merge_s"]))
 
@@ -114,12 +120,10 @@ def main_table(g: dict) -> list[str]:
         if p not in g:
             continue
         d = g[p]
-        sets = which_set(d["condition"])
-        by_set = [pct(d["collision"][sets == s]) for s in ("grid", "heldout", "heldout2")]
         rates = " / ".join(f"{100 * d[k].mean():.2f}" for k in OUTCOMES)
         cell, seed = worst(d, p.startswith("gap"))
         out.append(
-            f"| {name} | {' | '.join(by_set)} | {rates} % | {cell} | {seed} | "
+            f"| {name} | {collisions_by_set(d)} | {rates} % | {cell} | {seed} | "
             f"{merge_time(d):.1f} s | {jerk(d):.1f} m/s³ |"
         )
     return out
@@ -235,12 +239,10 @@ def results_table(g: dict, s: dict) -> list[str]:
     for p, name in RESULTS_NAMES.items():
         if p in g and p in s:
             d = g[p]
-            sets = which_set(d["condition"])
-            by_set = [pct(d["collision"][sets == x]) for x in ("grid", "heldout", "heldout2")]
             cell, seed = worst(d, p.startswith("gap"))
             seed_pct = cell.rsplit(" ", 2)[-2] if p.startswith("gap") else seed.split(": ")[-1]
             out.append(
-                f"| {name} | {' | '.join(by_set)} | {seed_pct.removesuffix(' %')} % | "
+                f"| {name} | {collisions_by_set(d)} | {seed_pct.removesuffix(' %')} % | "
                 f"{jerk(d):.1f} m/s³ | {pct(s[p]['collision'])} |"
             )
     return out
