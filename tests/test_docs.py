@@ -64,8 +64,9 @@ def test_the_site_builds_strictly(tmp_path):
 
 def test_the_reliability_page_prints_the_schemas_bounds():
     from marlmerge.config import ScenarioConfig, bounds_markdown
+    from marlmerge.config.cotraining import CoTrainConfig
     from marlmerge.config.training import TrainConfig
 
     page = (ROOT / "docs" / "reliability.md").read_text()
     table = page.split("<!-- bounds:start -->\n")[1].split("<!-- bounds:end -->")[0]
-    assert table.strip() == bounds_markdown(ScenarioConfig, TrainConfig).strip()
+    assert table.strip() == bounds_markdown(ScenarioConfig, TrainConfig, CoTrainConfig).strip()
