@@ -7,7 +7,7 @@ built on torchrl (`marlmerge.learners`). The folders are the layers, lowest firs
 
 Importing the package imports nothing heavy: the names below load their module on first use, so
 `import marlmerge.sim` brings in neither torch, Gymnasium nor PettingZoo. The Gymnasium id
-`marlmerge/RampMerge-v1` is registered as soon as Gymnasium is imported, before or after this.
+`marlmerge/RampMerge-v2` is registered as soon as Gymnasium is imported, before or after this.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import warnings
 from types import ModuleType
 from typing import Any
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _LAZY = {
     "ScenarioConfig": "marlmerge.config",

@@ -51,7 +51,7 @@ def test_same_seed_same_actions_same_trajectory_bit_for_bit():
 
 def test_agents_spaces_and_metadata():
     env = marlmerge.parallel_env()
-    assert env.metadata["name"] == "marlmerge_ramp_v1"
+    assert env.metadata["name"] == "marlmerge_ramp_v2"
     assert env.possible_agents[0] == EGO_AGENT
     assert env.possible_agents[1:] == [f"highway_{i}" for i in range(4)]
     assert env.observation_space(EGO_AGENT).shape == (len(EGO_FEATURES),)

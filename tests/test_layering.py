@@ -145,7 +145,7 @@ def test_the_gymnasium_id_is_registered_whichever_is_imported_first(order):
         imports.reverse()
     if order == "looked up first":  # as torchrl asks whether Gymnasium is installed
         imports.insert(1, "import importlib.util; importlib.util.find_spec('gymnasium')")
-    code = "; ".join([*imports, "print('marlmerge/RampMerge-v1' in gymnasium.registry)"])
+    code = "; ".join([*imports, "print('marlmerge/RampMerge-v2' in gymnasium.registry)"])
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.stdout.strip() == "True", out.stdout + out.stderr
 

@@ -146,14 +146,14 @@ def test_pettingzoo_view_is_sized_from_the_layout():
 
 
 def test_gymnasium_views_are_sized_from_the_layout():
-    env = gymnasium.make("marlmerge/RampMerge-v1", overrides=FULL)
+    env = gymnasium.make("marlmerge/RampMerge-v2", overrides=FULL)
     obs, info = env.reset(seed=0)
     assert env.observation_space.shape == (17,) and obs.shape == (17,)
     assert env.observation_space.contains(obs) and "filter_interventions" in info
     obs, *_, info = env.step(np.array([0.5], dtype=np.float32))
     assert obs.shape == (17,)
     vec = gymnasium.make_vec(
-        "marlmerge/RampMerge-v1", num_envs=3, vectorization_mode="vector_entry_point",
+        "marlmerge/RampMerge-v2", num_envs=3, vectorization_mode="vector_entry_point",
         overrides=FULL,
     )  # fmt: skip
     obs, _ = vec.reset(seed=0)

@@ -1,8 +1,8 @@
 """Gymnasium views of the core: the ramp vehicle as a single agent.
 
     import gymnasium, marlmerge
-    env = gymnasium.make("marlmerge/RampMerge-v1", render_mode="rgb_array")   # config="adversarial"
-    envs = gymnasium.make_vec("marlmerge/RampMerge-v1", num_envs=64,
+    env = gymnasium.make("marlmerge/RampMerge-v2", render_mode="rgb_array")   # config="adversarial"
+    envs = gymnasium.make_vec("marlmerge/RampMerge-v2", num_envs=64,
                               vectorization_mode="vector_entry_point")
 
 `RampMergeEnv` (one world) and `RampMergeVectorEnv` (B worlds of one batched core, not B copies

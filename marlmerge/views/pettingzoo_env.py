@@ -71,7 +71,7 @@ from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
 
 EGO_AGENT = "ramp_0"
-ENV_NAME = "marlmerge_ramp_v1"
+ENV_NAME = "marlmerge_ramp_v2"
 
 
 def reward_terms(info: dict[str, Any]) -> dict[str, float]:

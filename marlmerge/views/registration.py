@@ -4,12 +4,12 @@ imported, before or after marlmerge."""
 
 from __future__ import annotations
 
-ENV_ID = "marlmerge/RampMerge-v1"
+ENV_ID = "marlmerge/RampMerge-v2"
 """The ramp vehicle as a single agent (`marlmerge.views.gym_env`)."""
 
 
 def register() -> None:
-    """Register `marlmerge/RampMerge-v1` (env and native vector env) with Gymnasium."""
+    """Register `marlmerge/RampMerge-v2` (env and native vector env) with Gymnasium."""
     import gymnasium
 
     if ENV_ID not in gymnasium.registry:
