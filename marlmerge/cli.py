@@ -169,17 +169,25 @@ def _print_evaluation(ev: dict) -> None:
             f"{ev['highway_slow_share']:.1%} of agent steps, headway < 1 s "
             f"{ev['highway_short_headway_share']:.1%}"
         )
+    if "fair_failure_rate" in ev:
+        print(
+            f"fairness: the ego fails in {ev['ego_failure_rate']:.1%} of the roads, gap "
+            f"acceptance in {ev['rule_failure_rate']:.1%}; the ego alone in "
+            f"{ev['fair_failure_rate']:.1%}"
+        )
 
 
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
     from marlmerge.config.presets import resolve_config
 
+    if args.fairness and not args.highway:
+        raise ValueError("--fairness needs --highway: the highway policy it judges")
     scen = None
     if args.scenario:  # checked before torch and the policy are loaded
         scen = resolve_config(args.scenario)
     from marlmerge.evaluation.registry import policy_for_evaluation
-    from marlmerge.evaluation.rollout import evaluate_policy
+    from marlmerge.evaluation.rollout import run_episodes, summarize
 
     policy, scen = policy_for_evaluation(args.policy, scen)
     highway = None
@@ -187,7 +195,15 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
         from marlmerge.learners.highway import load_highway_policy
 
         highway = load_highway_policy(args.highway)
-    ev = evaluate_policy(policy, scen, args.episodes, args.seed, args.worlds, highway)
+    rec = run_episodes(policy, scen, args.episodes, args.seed, args.worlds, highway)
+    ev = summarize(rec)
+    if args.fairness:
+        from marlmerge.evaluation.plausibility import fairness
+        from marlmerge.evaluation.registry import make_policy, parse_policy
+
+        rule = make_policy(parse_policy("gap"), None, scen)
+        rule_rec = run_episodes(rule, scen, args.episodes, args.seed, args.worlds, highway)
+        ev |= fairness(rec["outcome"], rule_rec["outcome"])
     _print_evaluation(ev)
     print(json.dumps(ev))
     return 0
@@ -391,6 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--highway",
         default=None,
         help="a saved highway policy (run folder or highway_policy.pt) driving the highway agents",
+    )
+    e.add_argument(
+        "--fairness",
+        action="store_true",
+        help="with --highway: gap acceptance drives the same roads too; the ego's failures it "
+        "does not share are the highway policy's fair finds",
     )
     e.set_defaults(func=evaluate_cmd)
 

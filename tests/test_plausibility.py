@@ -7,10 +7,11 @@ import torch
 from tensordict import TensorDict
 
 from marlmerge.config.presets import resolve_config
-from marlmerge.evaluation.plausibility import HighwayTally, summarize_highway
+from marlmerge.evaluation.plausibility import HighwayTally, fairness, summarize_highway
 from marlmerge.evaluation.registry import policy_from_spec
 from marlmerge.evaluation.rollout import evaluate_policy, run_episodes
 from marlmerge.learners.highway import ResidualHighwayPolicy
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 from marlmerge.sim.observation import HIGHWAY_SCALE
 
 
@@ -85,3 +86,21 @@ def test_drivers_built_to_fail_fail_their_checks_and_idm_passes_them():
     assert racing["highway_short_headway_share"] > 5 * idm["highway_short_headway_share"]
     rec = run_episodes(ego, scen, 40, 7, 20, constant(-4.5))
     assert rec["highway_agent_steps"].max() <= k * rec["time_s"].max() / scen.sim.dt_s
+
+
+def test_fairness_counts_only_the_failures_gap_acceptance_does_not_share():
+    ok, hit, late = OUTCOME_SUCCESS, OUTCOME_COLLISION, OUTCOME_TRUNCATED
+    ego = np.array([ok, hit, hit, late, ok, ok, ok, ok])
+    gap = np.array([ok, hit, ok, ok, late, ok, ok, ok])
+    assert fairness(ego, gap) == {
+        "ego_failure_rate": 3 / 8,
+        "rule_failure_rate": 2 / 8,
+        "fair_failure_rate": 2 / 8,
+    }
+
+
+def test_evaluate_fairness_needs_a_highway_policy(capsys):
+    from marlmerge.cli import main
+
+    assert main(["evaluate", "hold", "--fairness", "--episodes", "3"]) == 2
+    assert "--fairness needs --highway" in capsys.readouterr().err

@@ -16,7 +16,8 @@ the acting highway agents of every episode:
     highway_min_headway_s        the smallest such headway of the episode (s; inf: none; the
                                  summary reports the median over episodes)
 
-`summarize_highway` turns them into the rates the evaluation reports. The own-fault count reads
+`summarize_highway` turns them into the rates the evaluation reports, and `fairness` pairs an
+ego's outcomes with gap acceptance's on the same roads. The own-fault count reads
 the agent's own `collision` reward term (-own_collision_penalty for exactly those collisions), so
 it needs `interaction.own_collision_penalty > 0` (the default, 100); with 0 it is NaN.
 """
@@ -27,6 +28,7 @@ import numpy as np
 from tensordict import TensorDictBase
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.sim import OUTCOME_SUCCESS
 from marlmerge.sim.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE, feature_index
 from marlmerge.views.torchrl_groups import GROUP
 
@@ -96,4 +98,22 @@ def summarize_highway(rec: dict[str, np.ndarray]) -> dict[str, float]:
         "highway_slow_share": float(rec["highway_slow_steps"].sum() / steps),
         "highway_short_headway_share": float(rec["highway_short_headway_steps"].sum() / steps),
         "highway_min_headway_s_median": float(np.median(rec["highway_min_headway_s"])),
+    }
+
+
+def fairness(ego: np.ndarray, rule: np.ndarray) -> dict[str, float]:
+    """Pair the outcomes of an ego and of gap acceptance on the same roads against the same
+    highway policy ([episodes] outcome codes each): a failure the careful rule driver suffers
+    too counts against the highway policy, not the ego.
+
+    ego_failure_rate    the ego's collisions and truncations
+    rule_failure_rate   gap acceptance's
+    fair_failure_rate   the ego's failures on roads where gap acceptance succeeds: what the
+                        highway policy found in the ego, not in the traffic
+    """
+    ego_fail, rule_fail = ego != OUTCOME_SUCCESS, rule != OUTCOME_SUCCESS
+    return {
+        "ego_failure_rate": float(ego_fail.mean()),
+        "rule_failure_rate": float(rule_fail.mean()),
+        "fair_failure_rate": float((ego_fail & ~rule_fail).mean()),
     }
