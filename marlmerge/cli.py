@@ -199,9 +199,9 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     ev = summarize(rec)
     if args.fairness:
         from marlmerge.evaluation.plausibility import fairness
-        from marlmerge.evaluation.registry import make_policy, parse_policy
+        from marlmerge.evaluation.registry import policy_from_spec
 
-        rule = make_policy(parse_policy("gap"), None, scen)
+        rule = policy_from_spec("gap", scen)
         rule_rec = run_episodes(rule, scen, args.episodes, args.seed, args.worlds, highway)
         ev |= fairness(rec["outcome"], rule_rec["outcome"])
     _print_evaluation(ev)

@@ -69,10 +69,15 @@ def make_actor_net(obs_dim: int, hidden: int, init_std: float) -> nn.Module:
     )
 
 
+def squash(z: Tensor, low: float, high: float) -> Tensor:
+    """A pre-squash sample z -> the offset in [low, high]."""
+    return (high + low) / 2 + (high - low) / 2 * torch.tanh(z)
+
+
 def greedy_offset(actor_net: nn.Module, obs: Tensor, low: float, high: float) -> Tensor:
     """The policy's deterministic action: the tanh-squashed mean, [..., 1] in [low, high]."""
     loc, _ = actor_net(obs)
-    return (high + low) / 2 + (high - low) / 2 * torch.tanh(loc)
+    return squash(loc, low, high)
 
 
 class PPOHighwayLearner(Learner):
@@ -147,10 +152,7 @@ class PPOHighwayLearner(Learner):
             return {"action": self.greedy(obs)}
         loc, scale = self.actor_net(obs)
         z = loc + scale * torch.randn(loc.shape, generator=generator)
-        return {"action": self.squash(z), "z": z}
-
-    def squash(self, z: Tensor) -> Tensor:
-        return (self.high + self.low) / 2 + (self.high - self.low) / 2 * torch.tanh(z)
+        return {"action": squash(z, self.low, self.high), "z": z}
 
     @torch.no_grad()
     def greedy(self, obs: Tensor) -> Tensor:

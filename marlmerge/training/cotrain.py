@@ -316,12 +316,11 @@ def highway_rows(batch: TensorDictBase, residual: ResidualHighwayPolicy) -> Tens
     )
 
 
-def ppo_highway_rows(batch: TensorDictBase, learner: PPOHighwayLearner) -> Tensor:
+def ppo_highway_rows(batch: TensorDictBase, learner: PPOHighwayLearner, critic: str) -> Tensor:
     """The learning highway agents' rollout of a batch [B, T, K] as PPO rows (GAE advantages
     per agent slot; `PPOHighwayLearner.rollout_rows`), from the pre-squash samples `z` the
-    policy acted with."""
+    policy acted with; `critic` ("local" / "central") is the learner's critic input."""
     nxt = batch.get("next")
-    critic = "local" if learner.critic_dim == learner.obs_dim else "central"
     obs, next_obs = batch.get((GROUP, "observation")), nxt.get((GROUP, "observation"))
     valid = batch.get((GROUP, "mask")) & (batch.get("opponent") >= 0)  # [B, T, K]
     left, exited = nxt.get((GROUP, "left_road")), nxt.get((GROUP, "exited"))
@@ -490,7 +489,9 @@ class CoTrainRun:
             residual = ResidualHighwayPolicy(lambda obs: hw.act(obs)["action"], self.scen)
             if isinstance(hw.learner, PPOHighwayLearner):
                 hw.exploring = True  # PPO learns from its own samples
-                rows = functools.partial(ppo_highway_rows, learner=hw.learner)
+                rows = functools.partial(
+                    ppo_highway_rows, learner=hw.learner, critic=cfg.ppo.critic
+                )
                 residual = ResidualHighwayPolicy(hw.act, self.scen)
             else:
                 explore(hw, cfg.highway_sigma_start, cfg.highway_sigma_end, length // 2)
