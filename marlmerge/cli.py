@@ -155,11 +155,15 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
 
 
 def _print_evaluation(ev: dict) -> None:
+    def rate(key: str) -> str:
+        lo, hi = ev[f"{key}_ci95"]
+        return f"{key} {ev[f'{key}_rate']:.1%} [{lo:.1%}, {hi:.1%}]"
+
     print(
-        f"greedy evaluation on {ev['episodes']} held-out episodes: "
-        f"success {ev['success_rate']:.1%}, collision {ev['collision_rate']:.1%}, "
-        f"truncation {ev['truncation_rate']:.1%}, mean merge time {ev['mean_merge_time_s']:.1f} s,"
-        f" mean |acceleration| {ev['mean_abs_accel_mps2']:.2f} m/s^2"
+        f"greedy evaluation on {ev['episodes']} held-out episodes (95 % intervals): "
+        f"{rate('success')}, {rate('collision')}, {rate('truncation')}, "
+        f"mean merge time {ev['mean_merge_time_s']:.1f} s, "
+        f"mean |acceleration| {ev['mean_abs_accel_mps2']:.2f} m/s^2"
     )
     if "highway_hard_brake_share" in ev:
         print(
@@ -231,6 +235,7 @@ def grid_cmd(args: argparse.Namespace) -> int:
         backend=args.backend,
         workers=args.workers,
         address=args.address,
+        estimator=args.estimator,
     )
     print(
         f"{len(result.rows)} episodes; {result.cells_run} cells run on the {result.backend} "
@@ -266,6 +271,43 @@ def stress_cmd(args: argparse.Namespace) -> int:
     summary = {k: report[k] for k in ("policy", "episodes", "failure_rate", "wall_s")}
     summary["regions"] = [[r["preset"], r["failure_rate"], r["ci95"]] for r in report["regions"]]
     print(json.dumps(summary))
+    return 0
+
+
+def estimate_cmd(args: argparse.Namespace) -> int:
+    """A policy's collision (or failure) rate with its 95 % interval, by Monte Carlo or
+    importance sampling; the last line printed is the JSON summary."""
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.estimate import EstimateSettings, Estimator
+
+    settings = EstimateSettings(
+        method=args.method,
+        event=args.event,
+        rel_ci=args.rel_ci,
+        episodes=args.episodes,
+        max_episodes=args.max_episodes,
+        seed=args.seed,
+        worlds=args.worlds,
+        batch=args.batch,
+        rounds=args.rounds,
+        round_episodes=args.round_episodes,
+    )
+    scen = resolve_config(args.scenario) if args.scenario else None
+    from marlmerge.evaluation.registry import policy_for_evaluation
+
+    policy, scen = policy_for_evaluation(args.policy, scen)
+    report = Estimator(policy, args.policy, scen, settings, args.out).run()
+    lo, hi = report["ci95"]
+    print(
+        f"{report['event']} rate of {args.policy} on {report['scenario']} ({report['method']}): "
+        f"{report['rate']:.3g} [{lo:.3g}, {hi:.3g}] from {report['episodes']} episodes "
+        f"({report['fitting_episodes']} fitting the proposal), {report['events']} events, "
+        f"ESS {report['ess']:.1f}, mean weight {report['mean_weight']:.3f}; Monte Carlo "
+        f"would need {report['mc_equivalent_episodes']:.3g} episodes"
+        + ("" if report["trusted"] else " (few effective events: not to be trusted)")
+    )
+    keys = ("rate", "ci95", "episodes", "ess", "mc_equivalent_episodes", "method")
+    print(json.dumps({k: report[k] for k in keys}))
     return 0
 
 
@@ -452,6 +494,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")
     g.add_argument("--out", default="runs/grid")
     g.add_argument("--no-progress", action="store_true")
+    g.add_argument(
+        "--estimator",
+        choices=("mc", "is"),
+        default="mc",
+        help="is: add each cell's importance-sampled collision rate to summary.md "
+        "(scripted traffic; see marlmerge estimate)",
+    )
     _backend_args(g)
     g.set_defaults(func=grid_cmd)
 
@@ -470,6 +519,27 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--out", default="runs/stress")
     st.add_argument("--no-clip", action="store_true", help="no video of the first failures")
     st.set_defaults(func=stress_cmd)
+
+    es = sub.add_parser("estimate", help="a policy's collision rate, with rare-event sampling")
+    es.add_argument("policy", help="as evaluate takes it: hold, idm, gap, a run, gap@shield, ...")
+    es.add_argument("--scenario", default=None, help="the traffic (default: the policy's own)")
+    es.add_argument("--method", choices=("is", "mc"), default="is")
+    es.add_argument("--event", choices=("collision", "failure"), default="collision")
+    es.add_argument(
+        "--rel-ci",
+        type=float,
+        default=None,
+        help="stop when the 95 %% half-width <= this x rate (default 0.2 unless --episodes)",
+    )
+    es.add_argument("--episodes", type=_at_least(1), default=None, help="final episodes instead")
+    es.add_argument("--max-episodes", type=_at_least(1), default=2_000_000)
+    es.add_argument("--seed", type=_at_least(0), default=0)
+    es.add_argument("--worlds", type=_at_least(1), default=500, help="episodes run at once")
+    es.add_argument("--batch", type=_at_least(1), default=5000, help="episodes per batch")
+    es.add_argument("--rounds", type=_at_least(1), default=8, help="cross-entropy rounds at most")
+    es.add_argument("--round-episodes", type=_at_least(1), default=2000)
+    es.add_argument("--out", default="runs/estimate", help="batches and report.json (resumable)")
+    es.set_defaults(func=estimate_cmd)
 
     pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
     pl.add_argument("run", help="run folder")

@@ -209,3 +209,26 @@ def test_a_sensing_condition_keeps_the_roads_and_changes_the_sensor():
     assert b.sensing.occlusion and b.sensing.position_noise_std_m > 0 and not a.sensing.active
     with pytest.raises(ValueError, match="no_such_sensor"):
         parse_condition("grid_dense_mixed+sensing:no_such_sensor")
+
+
+def test_the_grid_adds_importance_sampled_collision_rates(tmp_path, capsys):
+    """`--estimator is`: each cell's rate with its interval and ESS in summary.md, from
+    estimates kept per cell and reused by a rerun."""
+    argv = ["grid", "--policy", "hold", "--condition", "grid_dense_adversarial"]
+    argv += ["--episodes", "40", "--worlds", "20", "--out", str(tmp_path), "--no-progress"]
+    assert main([*argv, "--estimator", "is", "--backend", "serial"]) == 0
+    summary = (tmp_path / "summary.md").read_text()
+    assert "Collision % by importance sampling" in summary
+    line = next(row for row in summary.splitlines() if row.startswith("| hold |") and "ESS" in row)
+    assert "[" in line and "–" in line
+    (estimate,) = tmp_path.glob("cells/*.is.json")
+    before = estimate.read_text()
+    capsys.readouterr()
+    assert main([*argv, "--estimator", "is", "--backend", "serial"]) == 0
+    table = summary.split("## Collision % by importance sampling")[1]
+    assert estimate.read_text() == before
+    assert (tmp_path / "summary.md").read_text().split("## Collision % by importance sampling")[
+        1
+    ] == table
+    with pytest.raises(SystemExit):
+        main([*argv, "--estimator", "bayes"])

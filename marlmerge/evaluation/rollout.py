@@ -14,9 +14,17 @@ import numpy as np
 import torch
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder
+from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder, wilson_interval
 from marlmerge.evaluation.plausibility import HighwayTally, summarize_highway
-from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
+from marlmerge.sim import (
+    EGO,
+    OUTCOME_COLLISION,
+    OUTCOME_SUCCESS,
+    OUTCOME_TRUNCATED,
+    TrafficCore,
+)
+from marlmerge.sim.layout import VF_X
+from marlmerge.sim.proposal import N_STATS, Proposal
 from marlmerge.sim.streams import WorldSeed
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
@@ -38,6 +46,7 @@ def rollout_first_egos(
     highway_policy: HighwayPolicy | None = None,
     road_seeds: Sequence[WorldSeed] | None = None,
     scenarios: Sequence[ScenarioConfig] | None = None,
+    proposal: Proposal | None = None,
 ) -> tuple[dict[str, np.ndarray], list[dict[str, np.ndarray]]]:
     """Run the first ego of `episodes` fresh worlds to its end.
 
@@ -50,6 +59,10 @@ def rollout_first_egos(
     agents' plausibility counts (`marlmerge.evaluation.plausibility`). `road_seeds` (one per
     episode) replace the seeds `seed + e`; `scenarios` (one per episode, differing from
     `scenario` only in what `[sample]` draws) give each episode its own traffic and road.
+    With `proposal` the traffic is importance-sampled (`marlmerge.sim.proposal`) and the
+    records add each episode's `log_weight` (log p/q of its draws when it ended), `draw_stats`
+    [E, N_STATS] (what the proposal drew) and `min_gap_m` (the smallest bumper gap to the
+    right-lane vehicles at the ego's position while it was in the merge zone or beyond).
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
@@ -70,9 +83,11 @@ def rollout_first_egos(
         )
         if highway_policy is None:
             own = None if scenarios is None else scenarios[g * worlds : g * worlds + nw]
-            env = BatchedMergeEnv(scenario, num_worlds=nw, seed=seeds, scenarios=own)
-        elif scenarios is not None:
-            raise ValueError("scenarios: not with a highway policy")
+            env = BatchedMergeEnv(
+                scenario, num_worlds=nw, seed=seeds, scenarios=own, proposal=proposal
+            )
+        elif scenarios is not None or proposal is not None:
+            raise ValueError("scenarios, proposal: not with a highway policy")
         else:
             env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seeds)
             env.set_opponent_mix(1, 0.0)
@@ -84,6 +99,7 @@ def rollout_first_egos(
             recorder = TrajectoryRecorder(scenario, nw)
             env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
         tally = None if highway_policy is None else HighwayTally(scenario, nw)
+        weights = None if proposal is None else WeightTally(env.core, nw)
         outcome = np.zeros(nw, dtype=np.int64)
         interventions = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
@@ -96,6 +112,8 @@ def rollout_first_egos(
             running = outcome == 0
             if tally is not None:
                 tally.add(td, nxt, running)
+            if weights is not None:
+                weights.add(running, nxt.get("outcome").reshape(nw).numpy() != 0)
             background = np.where(
                 running, env.core.state.background_collisions - background0, background
             )
@@ -114,10 +132,38 @@ def rollout_first_egos(
         rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
         rec["background_collisions"].append(background)
         rec["filter_interventions"].append(interventions)
-        for key, values in ({} if tally is None else tally.records()).items():
+        extra = {} if tally is None else tally.records()
+        extra |= {} if weights is None else weights.records()
+        for key, values in extra.items():
             rec.setdefault(key, []).append(values)
         traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
+
+
+class WeightTally:
+    """Each episode's log-likelihood ratio, proposal statistics and closest gap, taken when it
+    ends (the world goes on drawing after that)."""
+
+    def __init__(self, core: TrafficCore, n: int):
+        self.core = core
+        self.log_w = np.zeros(n)
+        self.stats = np.zeros((n, N_STATS))
+        self.min_gap_m = np.full(n, np.inf)
+
+    def add(self, running: np.ndarray, ended: np.ndarray) -> None:
+        tilted = self.core.streams.tilted
+        assert tilted is not None
+        gaps = self.core.ego_gaps()
+        in_zone = self.core.vf[:, VF_X, EGO] >= self.core.cfg.road.x_zone_start_m
+        gap = np.minimum(gaps.d_front_m, gaps.d_back_m)
+        closer = running & in_zone & (gap < self.min_gap_m)
+        self.min_gap_m[closer] = gap[closer]
+        end = running & ended
+        self.log_w[end] = tilted.log_w[end]
+        self.stats[end] = tilted.stats[end]
+
+    def records(self) -> dict[str, np.ndarray]:
+        return {"log_weight": self.log_w, "draw_stats": self.stats, "min_gap_m": self.min_gap_m}
 
 
 def run_episodes(
@@ -137,11 +183,15 @@ def run_episodes(
 def summarize(rec: dict[str, np.ndarray]) -> dict[str, float]:
     o = rec["outcome"]
     ok = o == OUTCOME_SUCCESS
+    rates = {
+        "success": ok,
+        "collision": o == OUTCOME_COLLISION,
+        "truncation": o == OUTCOME_TRUNCATED,
+    }
     return {
         "episodes": int(o.size),
-        "success_rate": float(np.mean(ok)),
-        "collision_rate": float(np.mean(o == OUTCOME_COLLISION)),
-        "truncation_rate": float(np.mean(o == OUTCOME_TRUNCATED)),
+        **{f"{k}_rate": float(np.mean(v)) for k, v in rates.items()},
+        **{f"{k}_ci95": list(wilson_interval(int(v.sum()), int(v.size))) for k, v in rates.items()},
         "mean_merge_time_s": float(np.mean(rec["time_s"][ok])) if ok.any() else float("nan"),
         "mean_abs_accel_mps2": float(np.mean(rec["mean_abs_accel"])),
         "mean_total_reward": float(np.mean(rec["reward"])),

@@ -29,6 +29,7 @@ from marlmerge.sim.observation import (
     HIGHWAY_FEATURES,
     ego_features,
 )
+from marlmerge.sim.proposal import Proposal
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
 from marlmerge.sim.state import EgoGaps, Rollout, Roster, StepEvents, TrafficState
 from marlmerge.sim.streams import (
@@ -110,11 +111,15 @@ class TrafficCore:
         parallel: bool | None = None,
         scenarios: Sequence[ScenarioConfig] | None = None,
         scenario_source: ScenarioSource | None = None,
+        proposal: Proposal | None = None,
     ):
         """scenarios: one per world, the traffic and road world b runs (each may differ from
         `cfg` only in what `[sample]` draws, `WORLD_KEYS`); None: every world runs `cfg`.
         scenario_source: with `[sample]`, chooses each new road's traffic in place of the
-        world's own draw (`ScenarioSource`); `world_tag` [B] holds the tag of its choice."""
+        world's own draw (`ScenarioSource`); `world_tag` [B] holds the tag of its choice.
+        proposal: draw the traffic the first ego of each reset meets from this proposal
+        (`marlmerge.sim.proposal`); `streams.tilted.log_w` [B] holds each world's exact
+        log-likelihood ratio. None (default): the scenario's own draws, bit for bit."""
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         check_world_scenarios(cfg, batch_size, scenarios)
@@ -135,7 +140,7 @@ class TrafficCore:
         self.obs_size = len(self.ego_features)
         self._ring_len = latency_steps(cfg) + 1 if cfg.sensing.active else 0
         self.parallel = batch_size >= PARALLEL_MIN_WORLDS if parallel is None else bool(parallel)
-        self.streams = Streams(cfg, batch_size)
+        self.streams = Streams(cfg, batch_size, proposal)
         for b, world in enumerate(scenarios or ()):
             self._set_world_scenario(b, world)
         self._allocate(initial_slots(cfg), 2 * CHUNK)
@@ -301,6 +306,8 @@ class TrafficCore:
             self.streams.seed(rows, world_seed_sequences(self.batch_size, seed, rows))
         elif fresh:
             self.streams.seed(np.array(fresh), world_seed_sequences(1, None, np.array(fresh)))
+        if self.streams.tilted is not None:
+            self.streams.tilted.restart(rows)
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[rows] = True
         self._clear(rows)
@@ -661,6 +668,11 @@ class TrafficCore:
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue bit for bit: arrays, generator states, the config."""
+        if self.streams.tilted is not None:
+            raise ValueError(
+                "state_dict: a core drawing from a proposal is not saved (its estimates keep "
+                "their per-batch results instead; marlmerge.evaluation.estimate)"
+            )
         return {
             "version": STATE_DICT_VERSION,
             "config": to_dict(self.cfg),

@@ -38,6 +38,7 @@ from marlmerge.sim.layout import (
     SC_V,
     SC_V0,
 )
+from marlmerge.sim.proposal import Proposal, TiltedDraws
 
 CHUNK = 32
 """Vehicles (or measurements) drawn per stream at a time."""
@@ -102,13 +103,17 @@ def world_seed_sequences(
 class Streams:
     """The generators of B worlds and what they draw."""
 
-    def __init__(self, cfg: ScenarioConfig, batch_size: int):
+    def __init__(self, cfg: ScenarioConfig, batch_size: int, proposal: Proposal | None = None):
         self.cfgs = [cfg] * batch_size
         """Each world's scenario: `cfg`, or the traffic it drew (`[sample]`)."""
         self.gens: list[list[np.random.Generator]] = [[] for _ in range(batch_size)]
         self.n_streams = N_STREAMS + 1 if cfg.sensing.noisy else N_STREAMS
         if cfg.sample.active:
             self.n_streams = SCENARIO_STREAM + 1
+        if proposal is not None:
+            proposal.check(cfg)
+        self.tilted = None if proposal is None else TiltedDraws(proposal, batch_size)
+        """With a proposal: its draws, log-likelihood ratios and statistics per world."""
 
     def seed(self, rows: np.ndarray, sequences: list[np.random.SeedSequence]) -> None:
         for b, seq in zip(rows, sequences, strict=True):
@@ -139,6 +144,8 @@ class Streams:
         """The next `CHUNK` arrivals of `lane` after `t_last_s`, [CHUNK, SC_COLS]. The entry speed
         is drawn from `traffic.entry_speed_mps` and capped at the driver's desired speed."""
         g, cfg = self.gens[b][lane], self.cfgs[b]
+        if self.tilted is not None:
+            return self._tilted_arrivals(b, lane, t_last_s)
         flow = cfg.traffic.flow_vph_per_lane
         out = np.empty((CHUNK, SC_COLS))
         if flow > 0:
@@ -151,11 +158,39 @@ class Streams:
         out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])  # nobody enters above its v0
         return out
 
+    def _tilted_arrivals(self, b: int, lane: int, t_last_s: float) -> np.ndarray:
+        """`arrivals` under the proposal (`marlmerge.sim.proposal`): the same columns, the
+        vehicles entering inside its window drawn from it, their weights kept."""
+        g, cfg, tw = self.gens[b][lane], self.cfgs[b], self.tilted
+        assert tw is not None
+        flow, d = cfg.traffic.flow_vph_per_lane, cfg.driver
+        out = np.empty((CHUNK, SC_COLS))
+        if flow > 0:
+            out[:, SC_T] = tw.gaps(b, lane, g, 3600.0 / flow, t_last_s, CHUNK)
+        else:
+            out[:, SC_T] = np.inf
+        tilt = tw.in_window(out[:, SC_T])
+        out[:, SC_V] = self._entry_speed(cfg, g, CHUNK)
+        speed_factor = tw.band(b, 0, g, d.desired_speed_factor, tilt)
+        out[:, SC_V0] = speed_factor * cfg.road.speed_limit_mps
+        out[:, SC_T_HW] = tw.band(b, 1, g, d.time_headway_s, tilt)
+        out[:, SC_POL] = tw.band(b, 2, g, d.politeness, tilt)
+        mix = np.asarray(d.mix, dtype=np.float64)
+        out[:, SC_PROFILE] = tw.profiles(b, lane, g, mix / mix.sum(), tilt)
+        out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])
+        return out
+
     def departures(self, b: int) -> np.ndarray:
         """The next `CHUNK` egos: start speed and the driver they become once merged."""
         g, cfg = self.gens[b][EGO_STREAM], self.cfgs[b]
         out = np.zeros((CHUNK, SC_COLS))
-        out[:, SC_V] = g.uniform(*cfg.ego.start_speed_mps, size=CHUNK)
+        if self.tilted is not None:  # the first ego after a reset starts at a tilted speed
+            first = np.zeros(CHUNK, dtype=bool)
+            first[0] = self.tilted.first_ego[b]
+            self.tilted.first_ego[b] = False
+            out[:, SC_V] = self.tilted.band(b, 3, g, cfg.ego.start_speed_mps, first)
+        else:
+            out[:, SC_V] = g.uniform(*cfg.ego.start_speed_mps, size=CHUNK)
         out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(cfg, g, CHUNK)
         out[:, SC_PROFILE] = NEUTRAL
         return out

@@ -45,6 +45,7 @@ from marlmerge.sim import (
     TrafficCore,
 )
 from marlmerge.sim.action import as_actions
+from marlmerge.sim.proposal import Proposal
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.sim.streams import ScenarioSource
 
@@ -63,16 +64,23 @@ class BatchedMergeEnv(EnvBase):
         device: str | torch.device = "cpu",
         scenarios: Sequence[ScenarioConfig] | None = None,
         scenario_source: ScenarioSource | None = None,
+        proposal: Proposal | None = None,
     ):
         """seed: one int for the batch, or one per world (`marlmerge.sim.streams`); scenarios:
         one per world, the traffic and road it runs; scenario_source: chooses each new road's
         traffic in place of `[sample]`'s draw, and the root key `"scenario_tag"` [B, 1] int64
-        reports the tag of its choice (`TrafficCore`)."""
+        reports the tag of its choice; proposal: importance sampling of the traffic
+        (`TrafficCore`)."""
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.cfg = resolve_config(config, **(overrides or {}))
         self.num_worlds = num_worlds
         self.core = TrafficCore(
-            self.cfg, num_worlds, seed, scenarios=scenarios, scenario_source=scenario_source
+            self.cfg,
+            num_worlds,
+            seed,
+            scenarios=scenarios,
+            scenario_source=scenario_source,
+            proposal=proposal,
         )
         self.recorder: Callable[[Rollout], None] | None = None
         """Called with every env step's `Rollout` (evaluation records trajectories from its

@@ -1,0 +1,389 @@
+"""Crash rates users can trust: a policy's collision (or failure) rate with a 95 % interval, by
+plain Monte Carlo or by importance sampling of the traffic it meets.
+
+`method="mc"`: first-ego episodes on fresh roads, the rate k/n with its Wilson interval.
+
+`method="is"`: the traffic near the first ramp vehicle's merge is drawn from a `Proposal`
+(`marlmerge.sim.proposal`) and each episode weighed by its exact likelihood ratio w = p/q, so
+mean(1[event] * w) is an unbiased estimate of the natural rate. The proposal is fitted by the
+adaptive (multilevel) cross-entropy method (Rubinstein & Kroese 2004; O'Kelly et al. 2018):
+each round runs `round_episodes` episodes under the current proposal, ranks them by a
+danger score (an event scores -1; otherwise the smallest gap to the right-lane vehicles in the
+merge zone, in m), keeps the `elite_fraction` most dangerous (or every event once there are that
+many) and refits the proposal to the elite's draws, each weighed by w (weighted maximum
+likelihood for the profiles and gaps, moments for the Betas), smoothed. The final stage then runs
+fresh episodes under the last proposal, in batches, until the interval's half-width is at most
+`rel_ci` times the rate (after `min_events` events) or `episodes` are done.
+
+Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
+episodes used (fitting rounds included), the effective sample size of the event weights
+(sum y)^2 / sum y^2 with y = 1[event] w, the mean weight (1 in expectation: far from 1 flags a
+proposal that misses part of the natural traffic) and the Monte Carlo episodes the same interval
+would have needed, rate (1 - rate) / se^2. An estimate with few effective events (`ess` <
+`MIN_TRUSTED_ESS`) is marked untrusted: its variance estimate is itself unreliable.
+
+Every batch is written to `OUT/batches/` as it finishes, and `OUT/request.json` records what
+was asked: a rerun with the same request reuses the batches (an interrupted estimate resumes,
+bit for bit); a different request refuses, naming what differs. Episode e of stage s, batch i is
+the first ego of a world seeded `SeedSequence(seed, spawn_key=(s, i, e))`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from marlmerge.config import ScenarioConfig, to_dict
+from marlmerge.evaluation.metrics import Z_95, wilson_interval
+from marlmerge.io.files import load, save, write_text
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
+from marlmerge.sim.proposal import (
+    BETA_RANGE,
+    GAP_SCALE_RANGE,
+    N_PROFILES,
+    N_STATS,
+    ST_BETA,
+    ST_GAP_N,
+    ST_GAP_SUM,
+    ST_PROFILE,
+    Proposal,
+    natural_profiles,
+)
+
+METHODS = ("mc", "is")
+EVENTS = ("collision", "failure")
+"""collision: the ramp vehicle collided; failure: collided or truncated (never merged)."""
+MIN_TRUSTED_ESS = 30.0
+DEFAULT_REL_CI = 0.2
+PROFILE_FLOOR = 0.02
+"""A fitted profile probability is at least this where the scenario draws the profile."""
+STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
+"""Settings that only say when to stop: a rerun may change them and keep the batches."""
+STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
+
+if TYPE_CHECKING:  # torch is imported only once the arguments are checked
+    from marlmerge.evaluation.rollout import EgoPolicy
+
+
+@dataclass(frozen=True)
+class EstimateSettings:
+    method: str = "is"
+    event: str = "collision"
+    rel_ci: float | None = None
+    """Stop once the interval's half-width is at most this times the rate (with neither this nor
+    `episodes` given: `DEFAULT_REL_CI`)."""
+    episodes: int | None = None
+    """Final-stage episodes to run (instead of `rel_ci`)."""
+    max_episodes: int = 2_000_000
+    """Final-stage episodes at most, whatever `rel_ci` says."""
+    seed: int = 0
+    worlds: int = 500
+    """Episodes stepped at once."""
+    batch: int = 5000
+    """Final-stage (and Monte Carlo) episodes per batch."""
+    rounds: int = 8
+    """Cross-entropy rounds at most."""
+    round_episodes: int = 2000
+    elite_fraction: float = 0.1
+    smoothing: float = 0.7
+    """Weight of the new fit against the previous proposal."""
+    min_events: int = 10
+    """Events needed before `rel_ci` may stop the estimate."""
+
+    def __post_init__(self) -> None:
+        def bad(key: str, why: str) -> ValueError:
+            return ValueError(f"estimate: {key} = {getattr(self, key)!r}: {why}")
+
+        if self.method not in METHODS:
+            raise bad("method", f"must be one of {', '.join(METHODS)}")
+        if self.event not in EVENTS:
+            raise bad("event", f"must be one of {', '.join(EVENTS)}")
+        if self.rel_ci is not None and self.episodes is not None:
+            raise ValueError("estimate: give rel_ci or episodes, not both")
+        if self.rel_ci is None and self.episodes is None:
+            object.__setattr__(self, "rel_ci", DEFAULT_REL_CI)
+        if self.rel_ci is not None and not 0.0 < self.rel_ci < 10.0:
+            raise bad("rel_ci", "must be in (0, 10)")
+        for key in ("episodes", "max_episodes", "worlds", "batch", "rounds", "round_episodes"):
+            value = getattr(self, key)
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise bad(key, "must be an integer >= 1")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise bad("seed", "must be an integer >= 0")
+        if not 0.0 < self.elite_fraction < 0.5:
+            raise bad("elite_fraction", "must be in (0, 0.5)")
+        if not 0.0 < self.smoothing <= 1.0:
+            raise bad("smoothing", "must be in (0, 1]")
+        if not isinstance(self.min_events, int) or self.min_events < 1:
+            raise bad("min_events", "must be an integer >= 1")
+
+
+# ---------------------------------------------------------------------- estimates from samples
+def weighted_estimate(event: np.ndarray, log_w: np.ndarray) -> dict[str, Any]:
+    """The importance-sampling estimate of P(event) from episodes drawn under a proposal:
+    rate, 95 % interval, ESS of the event weights, mean weight, MC-equivalent episodes."""
+    n = event.size
+    w = np.exp(log_w)
+    y = np.where(event, w, 0.0)
+    rate = float(np.mean(y))
+    se = float(np.std(y, ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+    sum_y2 = float(np.sum(y * y))
+    ess = float(np.sum(y) ** 2 / sum_y2) if sum_y2 > 0 else 0.0
+    mc_eq = rate * (1.0 - rate) / se**2 if se > 0 else math.nan
+    return {
+        "rate": rate,
+        "ci95": [max(rate - Z_95 * se, 0.0), rate + Z_95 * se] if n > 1 else [math.nan] * 2,
+        "se": se,
+        "events": int(np.count_nonzero(event)),
+        "ess": ess,
+        "mean_weight": float(np.mean(w)),
+        "max_weight_share": float(np.max(y) / np.sum(y)) if np.sum(y) > 0 else math.nan,
+        "mc_equivalent_episodes": mc_eq,
+    }
+
+
+def mc_estimate(event: np.ndarray) -> dict[str, Any]:
+    """Plain Monte Carlo: k/n with its Wilson interval."""
+    n, k = event.size, int(np.count_nonzero(event))
+    lo, hi = wilson_interval(k, n)
+    return {
+        "rate": k / n,
+        "ci95": [lo, hi],
+        "se": math.sqrt(k / n * (1 - k / n) / n),
+        "events": k,
+        "ess": float(n),
+        "mean_weight": 1.0,
+        "max_weight_share": 1.0 / k if k else math.nan,
+        "mc_equivalent_episodes": float(n),
+    }
+
+
+def precise_enough(est: dict[str, Any], settings: EstimateSettings) -> bool:
+    if settings.rel_ci is None or est["events"] < settings.min_events or est["rate"] <= 0:
+        return False
+    half = (est["ci95"][1] - est["ci95"][0]) / 2
+    return half <= settings.rel_ci * est["rate"]
+
+
+# ---------------------------------------------------------------------- the cross-entropy fit
+def danger_score(event: np.ndarray, min_gap_m: np.ndarray) -> np.ndarray:
+    """-1 for an event, else the smallest merge-zone gap (m; inf if never in the zone)."""
+    return np.where(event, -1.0, min_gap_m)
+
+
+def fit_proposal(
+    cfg: ScenarioConfig,
+    current: Proposal,
+    batch: dict[str, np.ndarray],
+    settings: EstimateSettings,
+) -> tuple[Proposal, float]:
+    """One cross-entropy step: the proposal refitted to the elite of `batch` (drawn under
+    `current`), smoothed towards `current`, and the elite's danger level (-1: events only)."""
+    score = danger_score(batch["event"], batch["min_gap_m"])
+    n_elite = max(int(math.ceil(settings.elite_fraction * score.size)), 1)
+    level = max(float(np.sort(score)[n_elite - 1]), -1.0)
+    elite = score <= level
+    log_w = batch["log_weight"]
+    w = np.where(elite, np.exp(log_w - np.max(log_w[elite])), 0.0)  # relative weights suffice
+    s = w @ batch["draw_stats"]  # [N_STATS] weighted sums over the elite
+    alpha = settings.smoothing
+
+    def mix(new: float, old: float) -> float:
+        return alpha * new + (1.0 - alpha) * old
+
+    natural = np.asarray(natural_profiles(cfg))
+    drawn = (natural > 0) | cfg.sample.active
+    profiles = []
+    for lane in range(2):
+        counts = s[ST_PROFILE + N_PROFILES * lane : ST_PROFILE + N_PROFILES * (lane + 1)]
+        old = np.asarray(current.profile_p[lane])
+        if counts.sum() <= 0:
+            profiles.append(tuple(old))
+            continue
+        fit = np.where(drawn, np.maximum(counts / counts.sum(), PROFILE_FLOOR), 0.0)
+        new = alpha * fit / fit.sum() + (1.0 - alpha) * old
+        profiles.append(tuple(float(p) for p in new / new.sum()))
+    gaps = []
+    for lane in range(2):
+        n = s[ST_GAP_N + lane]
+        fit = s[ST_GAP_SUM + lane] / n if n > 0 else current.gap_scale[lane]
+        gaps.append(mix(float(np.clip(fit, *GAP_SCALE_RANGE)), current.gap_scale[lane]))
+    betas = []
+    for j, (a_old, b_old) in enumerate(current.beta):
+        n, sy, syy = s[ST_BETA + 3 * j : ST_BETA + 3 * j + 3]
+        mean = sy / n if n > 0 else 0.5
+        var = syy / n - mean * mean if n > 0 else 0.0
+        if n <= 0 or var <= 1e-9 or not 0.0 < mean < 1.0:
+            betas.append((a_old, b_old))
+            continue
+        common = max(mean * (1.0 - mean) / var - 1.0, 1e-6)
+        a_fit = float(np.clip(mean * common, *BETA_RANGE))
+        b_fit = float(np.clip((1.0 - mean) * common, *BETA_RANGE))
+        betas.append((mix(a_fit, a_old), mix(b_fit, b_old)))
+    fitted = replace(
+        current,
+        profile_p=tuple(profiles),  # type: ignore[arg-type]
+        gap_scale=tuple(gaps),  # type: ignore[arg-type]
+        beta=tuple(betas),
+    )
+    return fitted, level
+
+
+# ---------------------------------------------------------------------- running it
+WEIGHT_KEYS = ("log_weight", "draw_stats", "min_gap_m")
+
+
+def _filled(data: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """A batch with the weight keys a Monte Carlo batch leaves out (weight 1, nothing drawn)."""
+    empty = {
+        "log_weight": np.zeros(n),
+        "draw_stats": np.zeros((n, N_STATS)),
+        "min_gap_m": np.full(n, np.inf),
+    }
+    return empty | data
+
+
+class Estimator:
+    """One estimate (`EstimateSettings`) of one policy on one scenario, writing to `out`."""
+
+    def __init__(
+        self,
+        policy: EgoPolicy,
+        policy_name: str,
+        cfg: ScenarioConfig,
+        settings: EstimateSettings,
+        out: str | Path,
+    ):
+        self.policy, self.cfg, self.settings = policy, cfg, settings
+        self.out = Path(out)
+        self.request = {
+            "policy": policy_name,
+            "scenario": to_dict(cfg),
+            "settings": asdict(settings),
+        }
+        self.episodes_run = 0
+        self.episodes_reused = 0
+
+    def check_request(self) -> None:
+        """A new `out`, or one holding the same request (stopping rules aside)."""
+        path = self.out / "request.json"
+        if not path.exists():
+            self.out.joinpath("batches").mkdir(parents=True, exist_ok=True)
+            write_text(path, json.dumps(self.request, indent=1))
+            return
+        old = json.loads(path.read_text())
+        for key in ("policy", "scenario"):
+            if old.get(key) != self.request[key]:
+                raise ValueError(
+                    f"{self.out} holds an estimate of another {key}; use another --out or delete it"
+                )
+        mine = self.request["settings"]
+        for key, value in sorted(old.get("settings", {}).items()):
+            if key not in STOP_KEYS and mine.get(key) != value:
+                raise ValueError(
+                    f"{self.out} holds an estimate with {key} = {value!r}, asked "
+                    f"{mine.get(key)!r}; use another --out or delete it"
+                )
+        self.out.joinpath("batches").mkdir(parents=True, exist_ok=True)
+
+    def batch(
+        self, spawn: tuple[int, int], n: int, proposal: Proposal | None
+    ) -> dict[str, np.ndarray]:
+        """The episodes of one batch (read back if this request ran it before)."""
+        path = self.out / "batches" / f"{spawn[0]}_{spawn[1]}.pt"
+        if path.exists():
+            self.episodes_reused += n
+            return _filled(load(path, "estimate batch"), n)
+        from marlmerge.evaluation.rollout import rollout_first_egos
+
+        s = self.settings
+        seeds = [np.random.SeedSequence(s.seed, spawn_key=(*spawn, e)) for e in range(n)]
+        rec, _ = rollout_first_egos(
+            self.policy, self.cfg, n, 0, s.worlds, road_seeds=seeds, proposal=proposal
+        )
+        outcome = rec["outcome"]
+        event = outcome == OUTCOME_COLLISION
+        if s.event == "failure":
+            event |= outcome == OUTCOME_TRUNCATED
+        data = {"event": event} | {k: rec[k] for k in WEIGHT_KEYS if k in rec}
+        save(data, path)  # Monte Carlo batches keep only their events
+        self.episodes_run += n
+        return _filled(data, n)
+
+    def fit(self) -> tuple[Proposal, list[dict[str, Any]]]:
+        """The cross-entropy rounds: the final proposal and what each round saw."""
+        s = self.settings
+        proposal = Proposal.natural(self.cfg)
+        rounds = []
+        for r in range(s.rounds):
+            data = self.batch((STAGE_CE, r), s.round_episodes, proposal)
+            fitted, level = fit_proposal(self.cfg, proposal, data, s)
+            rounds.append(
+                {
+                    "round": r,
+                    "proposal": proposal.to_dict(),
+                    "episodes": s.round_episodes,
+                    "events": int(np.count_nonzero(data["event"])),
+                    "level": level,
+                }
+            )
+            proposal = fitted
+            if level <= -1.0:  # the elite is all events: the proposal aims at the event itself
+                break
+        return proposal, rounds
+
+    def final(self, stage: int, proposal: Proposal | None) -> tuple[dict[str, Any], int]:
+        """Batches until precise enough (or the episodes asked): the estimate and episodes."""
+        s = self.settings
+        target = s.episodes if s.episodes is not None else s.max_episodes
+        parts: list[dict[str, np.ndarray]] = []
+        done, i = 0, 0
+        est: dict[str, Any] = {}
+        while done < target:
+            n = min(s.batch, target - done)
+            parts.append(self.batch((stage, i), n, proposal))
+            done, i = done + n, i + 1
+            event = np.concatenate([p["event"] for p in parts])
+            log_w = np.concatenate([p["log_weight"] for p in parts])
+            est = mc_estimate(event) if proposal is None else weighted_estimate(event, log_w)
+            if s.episodes is None and precise_enough(est, s):
+                break
+        return est, done
+
+    def run(self) -> dict[str, Any]:
+        start = time.perf_counter()
+        self.check_request()
+        s = self.settings
+        rounds: list[dict[str, Any]] = []
+        proposal = None
+        if s.method == "is":
+            proposal, rounds = self.fit()
+            est, final_n = self.final(STAGE_FINAL, proposal)
+        else:
+            est, final_n = self.final(STAGE_MC, None)
+        fitting_n = sum(r["episodes"] for r in rounds)
+        report = {
+            "policy": self.request["policy"],
+            "scenario": self.cfg.name,
+            "method": s.method,
+            "event": s.event,
+            **est,
+            "episodes": final_n + fitting_n,
+            "final_episodes": final_n,
+            "fitting_episodes": fitting_n,
+            "trusted": bool(est["ess"] >= MIN_TRUSTED_ESS),
+            "precise_enough": bool(precise_enough(est, s)),
+            "proposal": None if proposal is None else proposal.to_dict(),
+            "rounds": rounds,
+            "episodes_run": self.episodes_run,
+            "episodes_reused": self.episodes_reused,
+            "wall_s": time.perf_counter() - start,
+        }
+        write_text(self.out / "report.json", json.dumps(report, indent=1))
+        return report
