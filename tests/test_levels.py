@@ -105,3 +105,36 @@ def test_training_with_level_replay_resumes_bit_for_bit(tmp_path):
     with open(full / "egos.csv", newline="") as fh:
         egos = sum(1 for _ in csv.DictReader(fh))
     assert sum(lv[3] for lv in levels["levels"]) <= egos
+
+
+def test_stress_regions_seed_the_buffer(tmp_path):
+    """`[levels] seed_presets`: each preset's [sample] box (and its road) becomes
+    `seed_levels` levels scored as one failure each, replayed before any fresh draw is scored;
+    a preset that does not load or seeds without replay is refused, naming the key."""
+    region = tmp_path / "region_01.toml"
+    region.write_text(
+        'name = "region_01"\n[road]\nmerge_zone_m = 60.0\n'
+        "[sample]\nflow_vph_per_lane = [2000.0, 2100.0]\nadversarial_share = [0.9, 1.0]\n"
+    )
+    scen = resolve_config("robust_mix")
+    replay = _replay(seed_presets=(str(region),), seed_levels=5, min_levels=1)
+    replay.seed_levels(scen, run_seed=3)
+    assert len(replay.levels) == 5 and all(lv.score == 0.75 for lv in replay.levels.values())
+    for level in replay.levels.values():
+        values = level.draw[0]
+        assert 2000.0 <= values["flow_vph_per_lane"] <= 2100.0
+        assert 0.9 <= values["adversarial_share"] <= 1.0 and values["merge_zone_m"] == 60.0
+    g = np.random.default_rng(0)
+    cfg, tag = replay.draw(scen, 0, g)
+    while tag >= 5:  # a fresh draw joins the buffer; replays pick the seeded levels
+        cfg, tag = replay.draw(scen, 0, g)
+    assert cfg.road.merge_zone_m == 60.0 and cfg.traffic.flow_vph_per_lane >= 2000.0
+    again = _replay(seed_presets=(str(region),), seed_levels=5)
+    again.seed_levels(scen, run_seed=3)
+    assert [again.levels[i].draw for i in range(5)] == [replay.levels[i].draw for i in range(5)]
+    with pytest.raises(ValueError, match=r"levels.seed_presets\[0\] = 'nope'"):
+        load_train_config(
+            "quick", **{"levels.replay_fraction": 0.5, "levels.seed_presets": ["nope"]}
+        )
+    with pytest.raises(ValueError, match="needs levels.replay_fraction > 0"):
+        load_train_config("quick", **{"levels.seed_presets": [str(region)]})

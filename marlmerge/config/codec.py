@@ -72,6 +72,11 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
         if not isinstance(value, dict):
             raise ValueError(f"config key {path!r} must be a table, got {value!r}")
         return from_dict(tp, value, _prefix=path + ".")
+    if origin is tuple and typing.get_args(tp)[1:] == (Ellipsis,):  # tuple[X, ...]
+        if not isinstance(value, list | tuple):
+            raise ValueError(f"config key {path!r} must be a list, got {value!r}")
+        item = typing.get_args(tp)[0]
+        return tuple(_coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value))
     if origin is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, list | tuple) or len(value) != len(args):

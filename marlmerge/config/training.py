@@ -148,6 +148,13 @@ class LevelsConfig:
     """Rank prioritisation: P ~ (1 / rank) ** (1 / temperature) (lower: greedier)."""
     staleness: float = num(0.1, 0.0, 1.0)
     """Weight of the staleness term (levels not chosen for long come back)."""
+    seed_presets: tuple[str, ...] = ()
+    """Scenario presets (paths or names) whose traffic starts in the buffer, e.g. the failure
+    regions `marlmerge stress` writes (`regions/region_KK.toml`): `seed_levels` levels drawn
+    from each preset's `[sample]` ranges (and its road), each starting with the score of one
+    failed ego, so that training replays them early."""
+    seed_levels: int = num(16, 1, 100_000)
+    """Levels drawn from each of `seed_presets`."""
 
 
 @dataclass(frozen=True)
@@ -182,8 +189,19 @@ class TrainConfig(RunConfig):
                     self.algorithm in ALGORITHMS,
                     f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
                 ),
+                (
+                    not self.levels.seed_presets or self.levels.replay_fraction > 0.0,
+                    "levels.seed_presets needs levels.replay_fraction > 0 (nothing replays them)",
+                ),
             ]
         )
+        from marlmerge.config.presets import resolve_config  # presets imports this module
+
+        for i, preset in enumerate(self.levels.seed_presets):
+            try:
+                resolve_config(preset)
+            except (ValueError, OSError) as e:
+                raise ValueError(f"levels.seed_presets[{i}] = {preset!r}: {e}") from None
 
 
 FLAT_KEYS = {

@@ -29,6 +29,9 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import LevelsConfig
 from marlmerge.sim.streams import WorldDraw, draw_world_values, world_changes
 
+SEED_KEY = 7
+"""spawn_key root of the generators that draw the seeded levels (`LevelReplay.seed_levels`)."""
+
 
 @dataclass
 class Level:
@@ -92,6 +95,28 @@ class LevelReplay:
         tag, self.next_id = self.next_id, self.next_id + 1
         self.levels[tag] = Level(draw, last_chosen=self.draws)
         return tag, self.levels[tag]
+
+    def seed_levels(self, base: ScenarioConfig, run_seed: int) -> None:
+        """Fill the buffer with `seed_levels` levels drawn from each of `seed_presets`
+        (`LevelsConfig`): each preset's `[sample]` ranges drawn in the world's order, its road
+        where it differs from `base`'s; each starts with the score of one failed ego. The draws
+        come from `SeedSequence(run_seed, spawn_key=(SEED_LEVELS_KEY, preset))`."""
+        from marlmerge.config.presets import resolve_config
+
+        for j, name in enumerate(self.cfg.seed_presets):
+            preset = resolve_config(name)
+            g = np.random.default_rng(np.random.SeedSequence(run_seed, spawn_key=(SEED_KEY, j)))
+            road = {
+                key: getattr(preset.road, key)
+                for key in ("ramp_length_m", "merge_zone_m")
+                if getattr(preset.road, key) != getattr(base.road, key)
+            }
+            for _ in range(self.cfg.seed_levels):
+                values, pure = draw_world_values(preset, g)
+                values |= {k: v for k, v in road.items() if values.get(k) is None}
+                base.replace(**world_changes(base, values, pure))  # a clear error now if invalid
+                _, level = self._add((values, pure))
+                level.episodes, level.failures = 1, 1
 
     # ---- scores ------------------------------------------------------------------------------
 

@@ -82,6 +82,7 @@ def make_env(cfg: TrainConfig) -> BatchedMergeEnv:
                 f"[sample] ranges; {cfg.scenario!r} has none"
             )
         levels = LevelReplay(cfg.levels)
+        levels.seed_levels(run_scenario(cfg), cfg.seed)
     return BatchedMergeEnv(
         cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed, scenario_source=levels
     )
