@@ -10,6 +10,7 @@ import pytest
 from marlmerge.cli import main
 from marlmerge.config.presets import resolve_config
 from marlmerge.evaluation.estimate import (
+    EVENT_SCORE,
     EstimateSettings,
     Estimator,
     fit_proposal,
@@ -153,11 +154,11 @@ def test_cross_entropy_moves_towards_the_elite():
         "event": event,
         "log_weight": np.zeros(n),
         "draw_stats": stats,
-        "min_gap_m": np.full(n, 10.0),
+        "min_gap_m": np.where(np.arange(n) < 50, -3.0, 10.0),  # overlaps before joining
     }
     settings = EstimateSettings(elite_fraction=0.1, smoothing=1.0)
     fitted, level = fit_proposal(CFG, Proposal.natural(CFG), batch, settings)
-    assert level == -1.0
+    assert level == EVENT_SCORE
     assert fitted.profile_p[0][2] == pytest.approx(0.96 / 1.0, abs=0.01)
     assert fitted.gap_scale[0] == pytest.approx(0.5)
     assert fitted.profile_p[1] == Proposal.natural(CFG).profile_p[1]  # nothing drawn: kept
@@ -170,7 +171,8 @@ def test_estimate_resumes_bit_for_bit_and_refuses_another_request(tmp_path):
     out = tmp_path / "est"
     first = Estimator(policy, "hold", cfg, settings, out).run()
     assert first["episodes"] == first["episodes_run"] == first["fitting_episodes"] + 60
-    (out / "batches" / "2_1.pt").unlink()  # as if killed before the last batch was written
+    (last,) = (out / "batches").glob("2_1_*.pt")
+    last.unlink()  # as if killed before the last batch was written
     again = Estimator(policy, "hold", cfg, settings, out).run()
     assert again["episodes_run"] == 30 and again["rate"] == first["rate"]
     assert again["ci95"] == first["ci95"] and again["proposal"] == first["proposal"]
@@ -189,3 +191,11 @@ def test_estimate_command_prints_the_summary_last(tmp_path, capsys):
     assert last["ci95"][0] <= last["rate"] <= last["ci95"][1]
     with pytest.raises(SystemExit):
         main(["estimate", "hold", "--method", "nope"])
+
+
+def test_cross_entropy_rounds_stop_when_the_level_stalls():
+    from marlmerge.evaluation.estimate import _stalled
+
+    assert not _stalled([9.0, 8.0])
+    assert not _stalled([9.0, 8.0, 7.5, 7.0])  # still falling
+    assert _stalled([9.0, 8.0, 8.1, 7.99])  # two rounds without falling below 8.0 - 0.05

@@ -6,13 +6,16 @@ plain Monte Carlo or by importance sampling of the traffic it meets.
 `method="is"`: the traffic near the first ramp vehicle's merge is drawn from a `Proposal`
 (`marlmerge.sim.proposal`) and each episode weighed by its exact likelihood ratio w = p/q, so
 mean(1[event] * w) is an unbiased estimate of the natural rate. The proposal is fitted by the
-adaptive (multilevel) cross-entropy method (Rubinstein & Kroese 2004; O'Kelly et al. 2018):
-each round runs `round_episodes` episodes under the current proposal, ranks them by a
-danger score (an event scores -1; otherwise the smallest gap to the right-lane vehicles in the
-merge zone, in m), keeps the `elite_fraction` most dangerous (or every event once there are that
-many) and refits the proposal to the elite's draws, each weighed by w (weighted maximum
-likelihood for the profiles and gaps, moments for the Betas), smoothed. The final stage then runs
-fresh episodes under the last proposal, in batches, until the interval's half-width is at most
+adaptive (multilevel) cross-entropy method (Rubinstein & Kroese 2004; O'Kelly et al. 2018).
+Each round runs `round_episodes` episodes under the current proposal and ranks them by a danger
+score: an event scores `EVENT_SCORE`, below any gap; any other episode its smallest gap to the
+right-lane vehicles in the merge zone (m; negative while it overlaps one before joining). It
+keeps the `elite_fraction` most dangerous (or every event once there are that many) and refits
+the proposal to the elite's draws, each weighed by w (weighted maximum likelihood for the
+profiles and gaps, moments for the Betas), smoothed. The rounds stop when the elite is all
+events, when its danger level has not fallen for `STALL_ROUNDS` rounds (the family can get no
+closer), or after `rounds`. The final stage then runs fresh episodes under the last proposal,
+in batches, until the interval's half-width is at most
 `rel_ci` times the rate (after `min_events` events) or `episodes` are done.
 
 Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
@@ -30,6 +33,7 @@ the first ego of a world seeded `SeedSequence(seed, spawn_key=(s, i, e))`.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -66,6 +70,8 @@ PROFILE_FLOOR = 0.02
 STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
 """Settings that only say when to stop: a rerun may change them and keep the batches."""
 STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
+EVENT_SCORE = -1.0e6
+"""The danger score of an event: below any gap an episode without one can have (m)."""
 
 if TYPE_CHECKING:  # torch is imported only once the arguments are checked
     from marlmerge.evaluation.rollout import EgoPolicy
@@ -173,8 +179,9 @@ def precise_enough(est: dict[str, Any], settings: EstimateSettings) -> bool:
 
 # ---------------------------------------------------------------------- the cross-entropy fit
 def danger_score(event: np.ndarray, min_gap_m: np.ndarray) -> np.ndarray:
-    """-1 for an event, else the smallest merge-zone gap (m; inf if never in the zone)."""
-    return np.where(event, -1.0, min_gap_m)
+    """`EVENT_SCORE` for an event, else the smallest merge-zone gap (m; inf if never in the
+    zone; negative while the ego overlaps a right-lane vehicle before joining)."""
+    return np.where(event, EVENT_SCORE, min_gap_m)
 
 
 def fit_proposal(
@@ -184,10 +191,11 @@ def fit_proposal(
     settings: EstimateSettings,
 ) -> tuple[Proposal, float]:
     """One cross-entropy step: the proposal refitted to the elite of `batch` (drawn under
-    `current`), smoothed towards `current`, and the elite's danger level (-1: events only)."""
+    `current`), smoothed towards `current`, and the elite's danger level (`EVENT_SCORE`: events
+    only)."""
     score = danger_score(batch["event"], batch["min_gap_m"])
     n_elite = max(int(math.ceil(settings.elite_fraction * score.size)), 1)
-    level = max(float(np.sort(score)[n_elite - 1]), -1.0)
+    level = float(np.sort(score)[n_elite - 1])
     elite = score <= level
     log_w = batch["log_weight"]
     w = np.where(elite, np.exp(log_w - np.max(log_w[elite])), 0.0)  # relative weights suffice
@@ -233,6 +241,19 @@ def fit_proposal(
         beta=tuple(betas),
     )
     return fitted, level
+
+
+STALL_ROUNDS = 2
+"""The cross-entropy rounds stop when the elite's danger level has not fallen for this many
+rounds in a row (the proposal family cannot move closer to the event)."""
+STALL_TOLERANCE_M = 0.05
+
+
+def _stalled(levels: list[float]) -> bool:
+    if len(levels) <= STALL_ROUNDS:
+        return False
+    best_before = min(levels[:-STALL_ROUNDS])
+    return min(levels[-STALL_ROUNDS:]) > best_before - STALL_TOLERANCE_M
 
 
 # ---------------------------------------------------------------------- running it
@@ -295,8 +316,11 @@ class Estimator:
     def batch(
         self, spawn: tuple[int, int], n: int, proposal: Proposal | None
     ) -> dict[str, np.ndarray]:
-        """The episodes of one batch (read back if this request ran it before)."""
-        path = self.out / "batches" / f"{spawn[0]}_{spawn[1]}.pt"
+        """The episodes of one batch (read back if this request ran it before, under the same
+        proposal: the file is named by both)."""
+        drawn = "mc" if proposal is None else json.dumps(proposal.to_dict(), sort_keys=True)
+        tag = hashlib.sha256(drawn.encode()).hexdigest()[:12]
+        path = self.out / "batches" / f"{spawn[0]}_{spawn[1]}_{tag}.pt"
         if path.exists():
             self.episodes_reused += n
             return _filled(load(path, "estimate batch"), n)
@@ -334,7 +358,9 @@ class Estimator:
                 }
             )
             proposal = fitted
-            if level <= -1.0:  # the elite is all events: the proposal aims at the event itself
+            if level <= EVENT_SCORE:  # the elite is all events: the proposal aims at the event
+                break
+            if _stalled([x["level"] for x in rounds]):
                 break
         return proposal, rounds
 
