@@ -13,7 +13,9 @@ What is tilted (everything else is drawn as without a proposal):
   arrival (exponential, its mean scaled by `gap_scale[lane]`), the driver profile (categorical,
   `profile_p[lane]`) and the driver's desired-speed factor, time headway and politeness (each a
   Beta(a, b) over the scenario's band in place of the uniform);
-- the **first ramp vehicle's start speed** after a reset: Beta(a, b) over `ego.start_speed_mps`.
+- the **start speed of the first `TILTED_DEPARTURES` ramp vehicles** after a reset: Beta(a, b)
+  over `ego.start_speed_mps` (two, because an env's reset ends the ego the core's reset sent
+  and sends the next one: the first ego an evaluation runs is the second departure).
 
 The road filled at a reset and everything after the window are drawn naturally. The weights are
 exact for each draw (closed forms below); `stats` keeps the sufficient statistics of the tilted
@@ -32,6 +34,7 @@ import numpy as np
 from marlmerge.config import ScenarioConfig
 
 N_PROFILES = 3
+TILTED_DEPARTURES = 2
 BETA_KEYS = ("desired_speed_factor", "time_headway_s", "politeness", "start_speed")
 """The Beta-tilted draws, in the order of `Proposal.beta`."""
 ST_PROFILE = 0

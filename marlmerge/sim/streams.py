@@ -38,7 +38,7 @@ from marlmerge.sim.layout import (
     SC_V,
     SC_V0,
 )
-from marlmerge.sim.proposal import Proposal, TiltedDraws
+from marlmerge.sim.proposal import TILTED_DEPARTURES, Proposal, TiltedDraws
 
 CHUNK = 32
 """Vehicles (or measurements) drawn per stream at a time."""
@@ -184,9 +184,9 @@ class Streams:
         """The next `CHUNK` egos: start speed and the driver they become once merged."""
         g, cfg = self.gens[b][EGO_STREAM], self.cfgs[b]
         out = np.zeros((CHUNK, SC_COLS))
-        if self.tilted is not None:  # the first ego after a reset starts at a tilted speed
+        if self.tilted is not None:  # the first egos after a reset start at a tilted speed
             first = np.zeros(CHUNK, dtype=bool)
-            first[0] = self.tilted.first_ego[b]
+            first[:TILTED_DEPARTURES] = self.tilted.first_ego[b]
             self.tilted.first_ego[b] = False
             out[:, SC_V] = self.tilted.band(b, 3, g, cfg.ego.start_speed_mps, first)
         else:
