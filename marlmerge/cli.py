@@ -6,6 +6,7 @@ render | validate`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -250,21 +251,18 @@ def grid_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings(cls: type, args: argparse.Namespace) -> Any:
+    """A settings dataclass from the command line: each field the arguments name (`--rel-ci`
+    sets `rel_ci`); the others keep their defaults."""
+    given = vars(args)
+    return cls(**{f.name: given[f.name] for f in dataclasses.fields(cls) if f.name in given})
+
+
 def stress_cmd(args: argparse.Namespace) -> int:
     """Search the traffic space for where a policy fails; verify and write the regions."""
     from marlmerge.evaluation.stress import StressSettings, stress
 
-    settings = StressSettings(
-        seed=args.seed,
-        points=args.points,
-        episodes_per_point=args.episodes_per_point,
-        regions=args.regions,
-        rounds=args.rounds,
-        box=args.box,
-        verify_episodes=args.verify_episodes,
-        worlds=args.worlds,
-        budget_s=args.budget_s,
-    )
+    settings = _settings(StressSettings, args)
     out = Path(args.out)
     report = stress(args.policy, out, args.scenario, settings, clip=not args.no_clip)
     print((out / "regions.md").read_text())
@@ -280,18 +278,7 @@ def estimate_cmd(args: argparse.Namespace) -> int:
     from marlmerge.config.presets import resolve_config
     from marlmerge.evaluation.estimate import EstimateSettings, Estimator
 
-    settings = EstimateSettings(
-        method=args.method,
-        event=args.event,
-        rel_ci=args.rel_ci,
-        episodes=args.episodes,
-        max_episodes=args.max_episodes,
-        seed=args.seed,
-        worlds=args.worlds,
-        batch=args.batch,
-        rounds=args.rounds,
-        round_episodes=args.round_episodes,
-    )
+    settings = _settings(EstimateSettings, args)
     scen = resolve_config(args.scenario) if args.scenario else None
     from marlmerge.evaluation.registry import policy_for_evaluation
 
