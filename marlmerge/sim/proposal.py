@@ -146,7 +146,8 @@ class TiltedDraws:
         self.stats = np.zeros((batch_size, N_STATS))
         """[B, N_STATS] sufficient statistics of the tilted draws (`ST_*` columns)."""
         self.first_ego = np.ones(batch_size, dtype=bool)
-        """[B] the world's next departure is its first since the reset."""
+        """[B] the world's next chunk of departures is its first since the reset (its first
+        `TILTED_DEPARTURES` are tilted)."""
 
     def restart(self, rows: np.ndarray) -> None:
         self.log_w[rows] = 0.0

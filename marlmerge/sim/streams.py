@@ -38,7 +38,12 @@ from marlmerge.sim.layout import (
     SC_V,
     SC_V0,
 )
-from marlmerge.sim.proposal import TILTED_DEPARTURES, Proposal, TiltedDraws
+from marlmerge.sim.proposal import (
+    TILTED_DEPARTURES,
+    Proposal,
+    TiltedDraws,
+    natural_profiles,
+)
 
 CHUNK = 32
 """Vehicles (or measurements) drawn per stream at a time."""
@@ -143,9 +148,9 @@ class Streams:
     def arrivals(self, b: int, lane: int, t_last_s: float) -> np.ndarray:
         """The next `CHUNK` arrivals of `lane` after `t_last_s`, [CHUNK, SC_COLS]. The entry speed
         is drawn from `traffic.entry_speed_mps` and capped at the driver's desired speed."""
-        g, cfg = self.gens[b][lane], self.cfgs[b]
         if self.tilted is not None:
             return self._tilted_arrivals(b, lane, t_last_s)
+        g, cfg = self.gens[b][lane], self.cfgs[b]
         flow = cfg.traffic.flow_vph_per_lane
         out = np.empty((CHUNK, SC_COLS))
         if flow > 0:
@@ -175,8 +180,8 @@ class Streams:
         out[:, SC_V0] = speed_factor * cfg.road.speed_limit_mps
         out[:, SC_T_HW] = tw.band(b, 1, g, d.time_headway_s, tilt)
         out[:, SC_POL] = tw.band(b, 2, g, d.politeness, tilt)
-        mix = np.asarray(d.mix, dtype=np.float64)
-        out[:, SC_PROFILE] = tw.profiles(b, lane, g, mix / mix.sum(), tilt)
+        natural = np.asarray(natural_profiles(cfg))
+        out[:, SC_PROFILE] = tw.profiles(b, lane, g, natural, tilt)
         out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])
         return out
 

@@ -100,7 +100,7 @@ class LevelReplay:
         """Fill the buffer with `seed_levels` levels drawn from each of `seed_presets`
         (`LevelsConfig`): each preset's `[sample]` ranges drawn in the world's order, its road
         where it differs from `base`'s; each starts with the score of one failed ego. The draws
-        come from `SeedSequence(run_seed, spawn_key=(SEED_LEVELS_KEY, preset))`."""
+        come from `SeedSequence(run_seed, spawn_key=(SEED_KEY, preset index))`."""
         from marlmerge.config.presets import resolve_config
 
         for j, name in enumerate(self.cfg.seed_presets):
