@@ -1,5 +1,5 @@
 """The stress-test space: points become the scenarios `[sample]` would draw, presets reproduce
-them, and the third held-out set is the seed's draw, not a choice."""
+them, and the third and fourth held-out sets are their seeds' draws, not choices."""
 
 import numpy as np
 import pytest
@@ -16,6 +16,7 @@ from marlmerge.evaluation.space import (
     scenario_at,
     unit,
     write_heldout3,
+    write_heldout_set,
     write_preset,
 )
 
@@ -26,6 +27,16 @@ def test_the_heldout3_files_are_the_seeds_draw(tmp_path):
     for path in drawn:
         committed = preset_dir("envs") / path.name
         assert load_scenario(committed) == load_scenario(path), path.name
+
+
+def test_the_heldout4_files_are_the_seeds_draw_and_differ_from_heldout3(tmp_path):
+    drawn = write_heldout_set(tmp_path, "heldout4")
+    assert len(drawn) == 12
+    for path in drawn:
+        committed = preset_dir("envs") / path.name
+        assert load_scenario(committed) == load_scenario(path), path.name
+        other = load_scenario(preset_dir("envs") / path.name.replace("heldout4", "heldout3"))
+        assert load_scenario(path).road != other.road
 
 
 def test_a_point_is_what_sample_draws_there():

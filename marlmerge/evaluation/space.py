@@ -57,6 +57,11 @@ ROAD_KEYS = ("ramp_length_m", "merge_zone_m")
 """The dimensions that are the road's geometry (a batch of worlds shares its road's)."""
 HELDOUT3_SEED = 20261202
 """The seed the third held-out set (`envs/heldout3_*`) was drawn with."""
+HELDOUT4_SEED = 20261203
+"""The seed the fourth held-out set (`envs/heldout4_*`) was drawn with: committed before the
+round that added checkpoint selection to the hardened recipe."""
+HELDOUT_SETS = {"heldout3": HELDOUT3_SEED, "heldout4": HELDOUT4_SEED}
+"""The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
 
 def unit(point: dict[str, float], space: tuple[Dimension, ...] = SPACE) -> np.ndarray:
@@ -98,13 +103,22 @@ def heldout_points(n: int = 12, seed: int = HELDOUT3_SEED) -> list[dict[str, flo
 
 def write_heldout3(folder: Path, n: int = 12, seed: int = HELDOUT3_SEED) -> list[Path]:
     """Write the third held-out set, `heldout3_01.toml` ... into `folder`."""
+    return write_heldout_set(folder, "heldout3", n, seed)
+
+
+def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None = None):
+    """Write a held-out set drawn from `SPACE` (`HELDOUT_SETS`), `PREFIX_01.toml` ... into
+    `folder`; `seed` defaults to the set's own."""
+    seed = HELDOUT_SETS[prefix] if seed is None else seed
+    ordinal = {"heldout3": "third", "heldout4": "fourth"}.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
     for i, point in enumerate(heldout_points(n, seed), start=1):
-        name = f"heldout3_{i:02d}"
+        name = f"{prefix}_{i:02d}"
         note = (
-            f"The third held-out set, condition {i} of {n}: drawn uniformly from the stress-test\n"
-            f"space (marlmerge.evaluation.space.SPACE) by seed {seed}, not chosen by anyone.\n"
-            "Remake the set with `marlmerge.evaluation.space.write_heldout3`."
+            f"The {ordinal} held-out set, condition {i} of {n}: drawn uniformly from the "
+            f"stress-test\nspace (marlmerge.evaluation.space.SPACE) by seed {seed}, not chosen "
+            "by anyone.\nRemake the set with "
+            f"`marlmerge.evaluation.space.write_heldout_set(folder, {prefix!r})`."
         )
         paths.append(write_preset(folder / f"{name}.toml", point_preset(base, point, name), note))
     return paths
