@@ -25,6 +25,18 @@ def test_every_preset_loads(path):
     assert cfg.name == path.stem
 
 
+TRAINERS = sorted((Path(__file__).parent.parent / "trainers").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", TRAINERS, ids=[p.stem for p in TRAINERS])
+def test_every_training_preset_loads_with_its_kind(path):
+    from marlmerge.config.presets import load_cotrain_config, load_train_config
+
+    kind = re.search(r'^kind = "(\w+)"', path.read_text(), re.M).group(1)
+    cfg = (load_train_config if kind == "train" else load_cotrain_config)(path)
+    assert cfg.name == path.stem
+
+
 def test_unknown_top_level_key_is_named(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text('name = "bad"\nflow = 3\n')

@@ -12,6 +12,9 @@ from marlmerge.config.training import MAX_SEED, MAX_STEPS, RunConfig
 PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
 PHASES = ("pretrain", "adversary", "ego")
 HIGHWAY_ALGORITHMS = ("quadq", "ppo")
+HIGHWAY_ACTIONS = ("accel_offset", "desired_speed")
+"""What a learned highway driver chooses (`marlmerge.learners.highway`): an adjustment to its
+IDM acceleration, or the desired speed its IDM drives towards (PPO only)."""
 """The highway group's learners: the paper's quadratic Q (off-policy) or PPO (`[ppo]`)."""
 PPO_CRITICS = ("local", "central")
 """IPPO's per-agent critic or MAPPO's centralised one (`marlmerge.learners.ppo`)."""
@@ -96,10 +99,24 @@ class CoTrainConfig(RunConfig):
     never take part."""
     select_seed: int = num(3_000_000, 0, MAX_SEED)
     """First seed of the selection episodes (apart from `eval_seed` and the grid's seeds)."""
+    ego_value_shaping: float = num(0.0, 0.0, 1000.0)
+    """Adversary phases: weight w of a potential-based shaping of the highway group's reward
+    with the ego's own value estimate (Ng et al., ICML 1999): each acting agent of a world gets
+    `sign * w * (V(s) - gamma * (1 - terminated) * V(s'))` per env step, V = max_a Q of the
+    ego's network. It pays at once for putting the ego where the ego itself expects to do
+    badly and sums to a constant over an episode, so it changes how fast adversaries learn,
+    not what is best for them. 0 (default) leaves the reward as the scenario defines it."""
     highway_algorithm: str = "quadq"
     """The highway group's learner: "quadq" (a residual quadratic Q, `highway_*` settings) or
     "ppo" (IPPO / MAPPO, `[ppo]`; it learns once per collector batch, so
     `highway_updates_per_sim_step` and the highway exploration schedule do not apply)."""
+    highway_action: str = "accel_offset"
+    """"accel_offset": a learned driver is IDM plus an adjustment in +-3 m/s^2 each step;
+    "desired_speed" (PPO only): it picks, each step, the desired speed its IDM drives towards,
+    as a factor of the limit in `highway_speed_factor_bounds`. Slower or faster drivers are
+    what it can be, never a car that stops dead or brakes out of the blue."""
+    highway_speed_factor_bounds: tuple[float, float] = num((0.5, 1.1), 0.1, 2.0, ordered=True)
+    """"desired_speed": the range of the chosen desired speed, x the speed limit."""
     ppo: PpoConfig = field(default_factory=PpoConfig)
 
     def __post_init__(self) -> None:
@@ -107,6 +124,15 @@ class CoTrainConfig(RunConfig):
         if self.highway_algorithm not in HIGHWAY_ALGORITHMS:
             raise ValueError(
                 f"highway_algorithm must be one of {HIGHWAY_ALGORITHMS}, "
+                f"got {self.highway_algorithm!r}"
+            )
+        if self.highway_action not in HIGHWAY_ACTIONS:
+            raise ValueError(
+                f"highway_action must be one of {HIGHWAY_ACTIONS}, got {self.highway_action!r}"
+            )
+        if self.highway_action == "desired_speed" and self.highway_algorithm != "ppo":
+            raise ValueError(
+                'highway_action = "desired_speed" needs highway_algorithm = "ppo", '
                 f"got {self.highway_algorithm!r}"
             )
         if self.profile not in PROFILES:

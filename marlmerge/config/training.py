@@ -158,6 +158,25 @@ class LevelsConfig:
 
 
 @dataclass(frozen=True)
+class SelectConfig:
+    """`[select]`: keep the best greedy policy of the run, not the last. Q-learning's returns
+    spike (the paper's Fig. 4): an ego that was fine can be broken by the next few hundred
+    thousand updates and repaired after them, so the last weights are a draw from that cycle.
+    From `start_fraction` of the run on, every `every_sim_steps` and at the end, the greedy
+    policy drives `episodes` roads of the training scenario seeded from `seed` (apart from the
+    evaluation's and every held-out set's); `policy.pt` is the one with the fewest failures
+    (collisions + truncations), the latest on ties, and `policy_last.pt` the last."""
+
+    every_sim_steps: int = num(0, 0, MAX_STEPS)
+    """0: off (`policy.pt` is the last policy, as in the paper)."""
+    episodes: int = num(400, 1, 10_000_000)
+    seed: int = num(5_000_000, 0, MAX_SEED)
+    start_fraction: float = num(0.5, 0.0, 1.0)
+    """Candidates from this fraction of `total_sim_steps` on (by default once the exploration
+    noise has decayed)."""
+
+
+@dataclass(frozen=True)
 class TrainConfig(RunConfig):
     """One run training the ego against scripted traffic (`marlmerge train`)."""
 
@@ -180,6 +199,7 @@ class TrainConfig(RunConfig):
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
+    select: SelectConfig = field(default_factory=SelectConfig)
 
     def __post_init__(self) -> None:
         self._check()

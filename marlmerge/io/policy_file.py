@@ -6,7 +6,8 @@ A policy file is a `marlmerge.io.files` file (tensors and plain data only, never
     version            1
     group              "ego" (the ramp vehicle) or "highway" (learned mainline drivers)
     algorithm          "quadq", "dqn" or "td3" (ego); "quadq-residual" or "ppo-residual"
-                       (highway: IDM plus a learned adjustment)
+                       (highway: IDM plus a learned adjustment) or "ppo-speed" (highway: IDM
+                       at a learned desired speed)
     observation        {"features": [names], "size": n}: the layout the network reads
                        (`marlmerge.sim.observation`; an ego's is the layout of its scenario's
                        `ego.observation`)
@@ -83,7 +84,7 @@ def write_policy(
 
 ALGORITHMS: dict[str, tuple[str, ...]] = {
     "ego": EGO_ALGORITHMS,
-    "highway": ("quadq-residual", "ppo-residual"),
+    "highway": ("quadq-residual", "ppo-residual", "ppo-speed"),
 }
 """The algorithms a policy file of each group may name (the ego's: what `marlmerge train` can
 train, `TrainConfig.algorithm`)."""
@@ -93,6 +94,7 @@ STATE_KEYS = {
     "td3": ("net", "hidden", "layers"),
     "quadq-residual": ("net", "hidden"),
     "ppo-residual": ("net", "hidden"),
+    "ppo-speed": ("net", "hidden"),
 }
 """What `policy_state` must hold for each algorithm (its loader rebuilds the network from it)."""
 TOP_KEYS = {

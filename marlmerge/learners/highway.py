@@ -62,6 +62,50 @@ class ResidualHighwayPolicy:
         return (self.base(obs) + offset).clamp(self.low, self.high)
 
 
+class DesiredSpeedHighwayPolicy:
+    """A learned highway driver that chooses how fast it wants to go: a neutral IDM driver whose
+    desired speed is `factor(obs)` x the speed limit ([..., K, 1], the learner's action in
+    `CoTrainConfig.highway_speed_factor_bounds`), clipped to
+    `sim.highway_agent_accel_bounds_mps2`. [..., K, 12] -> [..., K, 1] m/s^2.
+
+    Every acceleration it produces is a car-following driver's: it can drive slowly, speed up
+    into a gap or hang back, but never stop dead or brake with a free road ahead. IDM smooths the
+    choice over time, so per-step sampling noise explores sustained speeds, not jitter.
+    """
+
+    def __init__(
+        self, factor: Callable[[Tensor], Tensor | dict[str, Tensor]], scenario: ScenarioConfig
+    ) -> None:
+        self.factor = factor
+        self.idm = ScriptedHighwayPolicy("neutral", scenario)
+        self.limit_mps = scenario.road.speed_limit_mps
+        self.low, self.high = scenario.sim.highway_agent_accel_bounds_mps2
+
+    @torch.no_grad()
+    def __call__(self, obs: Tensor) -> Tensor | dict[str, Tensor]:
+        """The acceleration [..., K, 1]; when `factor` returns a dict (a learner's `act`), that
+        dict with the acceleration as its `"action"`."""
+        out = self.factor(obs)
+        factor = out["action"] if isinstance(out, dict) else out
+        v0 = factor.squeeze(-1).numpy().astype(np.float64) * self.limit_mps  # [..., K] m/s
+        a = np.nan_to_num(self.idm(obs.numpy(), v0), nan=0.0, posinf=0.0, neginf=self.low)
+        accel = torch.as_tensor(a).clamp(self.low, self.high)
+        return {**out, "action": accel} if isinstance(out, dict) else accel
+
+
+def make_driver(
+    action: str,
+    choice: Callable[[Tensor], Tensor | dict[str, Tensor]],
+    scenario: ScenarioConfig,
+) -> ResidualHighwayPolicy | DesiredSpeedHighwayPolicy:
+    """The learned driver of `CoTrainConfig.highway_action` around the learner's `choice`."""
+    if action == "desired_speed":
+        return DesiredSpeedHighwayPolicy(choice, scenario)
+    if action != "accel_offset":
+        raise ValueError(f"unknown highway action {action!r} ('accel_offset', 'desired_speed')")
+    return ResidualHighwayPolicy(choice, scenario)
+
+
 def frozen_net(
     state: dict[str, Tensor], obs_dim: int, hidden: int, bounds: tuple[float, float]
 ) -> QuadraticQNet:
@@ -92,10 +136,12 @@ def snapshot_policy(
     scen: ScenarioConfig,
     bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
     algorithm: str = "quadq",
+    action: str = "accel_offset",
 ) -> HighwayPolicy:
-    """The greedy highway policy of a pool snapshot: weights of the learned adjustment (of
-    `algorithm`'s network), squashed into `bounds` (m/s^2)."""
-    return ResidualHighwayPolicy(greedy_adjustment(algorithm, state, hidden, bounds), scen)
+    """The greedy highway policy of a pool snapshot: weights of the learned choice (of
+    `algorithm`'s network: an adjustment in m/s^2 or a desired-speed factor, per `action`),
+    squashed into `bounds`."""
+    return make_driver(action, greedy_adjustment(algorithm, state, hidden, bounds), scen)
 
 
 def save_highway_policy(
@@ -105,11 +151,12 @@ def save_highway_policy(
     scen: ScenarioConfig,
     bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
 ) -> None:
-    """A highway group's policy: the adjustment network's weights and the `bounds` its greedy
-    action is squashed into (stored, so the file reloads as it was trained); the file's
-    algorithm is `cfg.highway_algorithm` + "-residual"."""
+    """A highway group's policy: the network's weights and the `bounds` its greedy action is
+    squashed into (stored, so the file reloads as it was trained); the file's algorithm is
+    `cfg.highway_algorithm` + "-residual" (an adjustment) or "-speed" (a desired speed)."""
     state = {"net": state, "hidden": cfg.hidden, "profile": cfg.profile}
-    algorithm = f"{getattr(cfg, 'highway_algorithm', 'quadq')}-residual"
+    kind = "speed" if getattr(cfg, "highway_action", "") == "desired_speed" else "residual"
+    algorithm = f"{getattr(cfg, 'highway_algorithm', 'quadq')}-{kind}"
     write_policy(path, "highway", algorithm, bounds, state, to_dict(cfg), to_dict(scen))
 
 
@@ -119,6 +166,7 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
     scen = from_dict(ScenarioConfig, saved["scenario"])
     low, high = saved["action_bounds_mps2"]
     state = saved["policy_state"]
-    algorithm = saved["algorithm"].removesuffix("-residual")
+    algorithm, kind = saved["algorithm"].split("-")
+    action = "desired_speed" if kind == "speed" else "accel_offset"
     with weights_of(path):
-        return snapshot_policy(state["net"], state["hidden"], scen, (low, high), algorithm)
+        return snapshot_policy(state["net"], state["hidden"], scen, (low, high), algorithm, action)

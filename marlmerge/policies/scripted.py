@@ -43,8 +43,9 @@ class ScriptedHighwayPolicy:
         self.v0_mps = float(np.mean(d.desired_speed_factor)) * self.cfg.road.speed_limit_mps
         self.headway_s = float(np.mean(d.time_headway_s))
 
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """obs: [..., 12] scaled highway observation -> [..., 1] acceleration in m/s^2."""
+    def __call__(self, obs: np.ndarray, v0_mps: np.ndarray | None = None) -> np.ndarray:
+        """obs: [..., 12] scaled highway observation -> [..., 1] acceleration in m/s^2;
+        `v0_mps` [...] replaces the profile's desired speed (a learned driver's choice)."""
         raw = np.asarray(obs, dtype=np.float64) * HIGHWAY_SCALE
         cfg = self.cfg
         col = {k: raw[..., i] for k, i in _I.items()}
@@ -61,7 +62,7 @@ class ScriptedHighwayPolicy:
             col["speed"],
             gap,
             col["leader_speed"],
-            self.v0_mps,
+            self.v0_mps if v0_mps is None else v0_mps,
             self.headway_s,
             np.rint(col["lane"]) == 0,
             view,

@@ -68,6 +68,7 @@ from marlmerge.learners.highway import (
     ResidualHighwayPolicy,
     frozen_net,
     load_highway_policy,
+    make_driver,
     save_highway_policy,
     snapshot_policy,
 )
@@ -238,7 +239,7 @@ def make_ppo_group(cfg: CoTrainConfig, obs_dim: int, ego_dim: int, k: int, seed:
         obs_dim,
         critic_size(obs_dim, ego_dim, k, p.critic),
         cfg.hidden,
-        *OFFSET_BOUNDS_MPS2,
+        *highway_bounds(cfg),
         gamma=cfg.gamma,
         lmbda=p.gae_lambda,
         lr=p.lr,
@@ -265,6 +266,14 @@ def make_ppo_group(cfg: CoTrainConfig, obs_dim: int, ego_dim: int, k: int, seed:
         loss_log_every=1,
         exploring=False,
     )
+
+
+def highway_bounds(cfg: CoTrainConfig) -> tuple[float, float]:
+    """What the highway learner's action is squashed into: the adjustment's m/s^2 or the
+    desired-speed factor's range (`CoTrainConfig.highway_action`)."""
+    if cfg.highway_action == "desired_speed":
+        return cfg.highway_speed_factor_bounds
+    return OFFSET_BOUNDS_MPS2
 
 
 def explore(group: LearningGroup, start: float, end: float, decay_sim_steps: int) -> None:
@@ -314,6 +323,24 @@ def highway_rows(batch: TensorDictBase, residual: ResidualHighwayPolicy) -> Tens
         ],
         -1,
     )
+
+
+def shape_with_ego_value(
+    batch: TensorDictBase, net: QuadraticQNet, gamma: float, weight: float, sign: float
+) -> Tensor:
+    """Add `CoTrainConfig.ego_value_shaping` to the highway group's reward of a batch [B, T]
+    in place: `sign * weight * (V(s) - gamma * (1 - terminated) * V(s'))` for every agent of
+    the world, V = the ego network's max_a Q (C(s)) on the ego's observations. Returns the
+    shaping [B, T, 1]."""
+    nxt = batch.get("next")
+    with torch.no_grad():
+        value = net.max_value(batch.get("observation"))  # [B, T, 1]
+        next_value = net.max_value(nxt.get("observation"))  # [B, T, 1]
+    not_term = (~nxt.get("terminated")).to(value.dtype)  # [B, T, 1]
+    shaping = sign * weight * (value - gamma * not_term * next_value)  # [B, T, 1]
+    reward = nxt.get((GROUP, "reward"))  # [B, T, K, 1]
+    nxt.set((GROUP, "reward"), reward + shaping.unsqueeze(-2).to(reward.dtype))
+    return shaping
 
 
 def ppo_highway_rows(batch: TensorDictBase, learner: PPOHighwayLearner, critic: str) -> Tensor:
@@ -492,7 +519,7 @@ class CoTrainRun:
                 rows = functools.partial(
                     ppo_highway_rows, learner=hw.learner, critic=cfg.ppo.critic
                 )
-                residual = ResidualHighwayPolicy(hw.act, self.scen)
+                residual = make_driver(cfg.highway_action, hw.act, self.scen)
             else:
                 explore(hw, cfg.highway_sigma_start, cfg.highway_sigma_end, length // 2)
                 rows = functools.partial(highway_rows, residual=residual)
@@ -552,6 +579,11 @@ class CoTrainRun:
         self.phase_done += sim_steps
         self.total += sim_steps
         self.ego.explore_step = self.hw.explore_step = self.phase_done
+        if kind == "adversary" and self.cfg.ego_value_shaping > 0.0:
+            shape_with_ego_value(
+                batch, self.ego.learner.net, self.cfg.gamma, self.cfg.ego_value_shaping,
+                PROFILES[self.cfg.profile],
+            )  # fmt: skip
         self._log_highway(kind, batch)
         self._log_egos(kind, batch)
 
@@ -615,9 +647,10 @@ class CoTrainRun:
             weights = self.hw.learner.policy_state()["net"]
             self.pool.append({k: v.detach().clone() for k, v in weights.items()})
             self.pool = self.pool[-cfg.pool_size :]
-            save_highway_policy(out / "highway_policy.pt", self.pool[-1], cfg, scen)
+            bounds = highway_bounds(cfg)
+            save_highway_policy(out / "highway_policy.pt", self.pool[-1], cfg, scen, bounds)
             save_highway_policy(
-                out / "pool" / f"adversary_{self.phase_index}.pt", self.pool[-1], cfg, scen
+                out / "pool" / f"adversary_{self.phase_index}.pt", self.pool[-1], cfg, scen, bounds
             )
         self.phase_index += 1
         self.phase_done = 0  # the next phase's collector starts fresh egos in every world
@@ -628,9 +661,11 @@ class CoTrainRun:
 
     def snapshot(self, weights: dict[str, Tensor]) -> HighwayPolicy:
         """The greedy highway policy of pool weights of this run's highway learner."""
+        cfg = self.cfg
         return snapshot_policy(
-            weights, self.cfg.hidden, self.scen, algorithm=self.cfg.highway_algorithm
-        )
+            weights, cfg.hidden, self.scen, highway_bounds(cfg), cfg.highway_algorithm,
+            cfg.highway_action,
+        )  # fmt: skip
 
     def close(self) -> None:
         for log in (self.ego_log, self.hw_log, self.loss_log):
@@ -673,7 +708,10 @@ def select_ego(
     from marlmerge.evaluation.rollout import evaluate_policy
 
     opponents: list[HighwayPolicy | None] = [None] + [
-        snapshot_policy(s, cfg.hidden, scen, algorithm=cfg.highway_algorithm) for s in pool
+        snapshot_policy(
+            s, cfg.hidden, scen, highway_bounds(cfg), cfg.highway_algorithm, cfg.highway_action
+        )
+        for s in pool
     ]
     failures: list[list[int]] = []
     for _, weights in candidates:

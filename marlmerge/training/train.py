@@ -59,6 +59,7 @@ from marlmerge.training.loop import (
     save_checkpoint,
     transition_rows,
 )
+from marlmerge.training.select import Selection
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 CHECKPOINT_VERSION = 3
@@ -217,6 +218,9 @@ def train(
         sim_steps = ckpt["sim_steps"]
         if levels is not None:
             levels.load_state_dict(ckpt["levels"])
+    selection = make_selection(cfg, scen)
+    if ckpt is not None and selection is not None:
+        selection.load_state_dict(ckpt["select"])
     ego.explore_step = sim_steps
     logs = RunLogs.open(out, cfg, k * scen.sim.dt_s, ckpt)
     ego.on_loss = lambda update, loss: logs.loss.write([update, sim_steps, loss])
@@ -251,6 +255,7 @@ def train(
                 "loss_rows": logs.loss.rows,
                 "ego_rows": logs.egos.rows,
                 "levels": None if levels is None else levels.state_dict(),
+                "select": None if selection is None else selection.state_dict(),
             },
         )
 
@@ -265,8 +270,10 @@ def train(
 
     def after_updates() -> bool:
         nonlocal next_ckpt
+        if selection is not None and selection.due(sim_steps):
+            selection.consider(sim_steps, ego.learner)
         if sim_steps >= cfg.total_sim_steps:  # the policy first: a finished checkpoint has one
-            save_policy(out / "policy.pt", cfg, scen, ego.learner)
+            save_policies(out, cfg, scen, ego.learner, selection)
         if sim_steps >= next_ckpt or sim_steps >= cfg.total_sim_steps:
             checkpoint()
             next_ckpt += every
@@ -283,7 +290,12 @@ def train(
         bar.close()
     logs.close()
     finished = sim_steps >= cfg.total_sim_steps
-    evaluation = _evaluate_and_plot(cfg, out, ego.learner.greedy) if finished else None
+    greedy = ego.learner.greedy
+    if finished and selection is not None:
+        from marlmerge.learners.loading import load_policy
+
+        greedy = load_policy(out / "policy.pt")
+    evaluation = _evaluate_and_plot(cfg, out, greedy) if finished else None
     result = TrainResult(
         out, sim_steps, ego.updates, logs.tracker.egos, wall, times.update_s, times.collect_s,
         ego.learner.compile_time_s, evaluation,
@@ -307,15 +319,41 @@ def ego_rows(ego: LearningGroup, batch) -> torch.Tensor:
     return transition_rows(batch, ego.learner.replay_action(batch.reshape(-1)))
 
 
-def save_policy(path: Path, cfg: TrainConfig, scen: ScenarioConfig, learner: Learner) -> None:
+def make_selection(cfg: TrainConfig, scen: ScenarioConfig) -> Selection | None:
+    """The run's checkpoint selection (`[select]`) on its own scenario; None when off."""
+    if cfg.select.every_sim_steps == 0:
+        return None
+    return Selection(cfg.select, scen, cfg.total_sim_steps, cfg.eval_worlds)
+
+
+def save_policies(
+    out: Path, cfg: TrainConfig, scen: ScenarioConfig, learner: Learner, selection: Selection | None
+) -> None:
+    """policy.pt: the last policy, or with `[select]` the selected one (then the last is
+    policy_last.pt and the candidates are in selection.json)."""
+    if selection is None:
+        save_policy(out / "policy.pt", cfg, scen, learner)
+        return
+    save_policy(out / "policy.pt", cfg, scen, learner, selection.best_state)
+    save_policy(out / "policy_last.pt", cfg, scen, learner)
+    files.write_text(out / "selection.json", json.dumps(selection.summary(), indent=1))
+
+
+def save_policy(
+    path: Path,
+    cfg: TrainConfig,
+    scen: ScenarioConfig,
+    learner: Learner,
+    state: dict[str, Any] | None = None,
+) -> None:
     """policy.pt (`marlmerge.io.policy_file`): what `load_policy` rebuilds the greedy policy
-    from."""
+    from; `state` (a `policy_state`) instead of the learner's current one."""
     write_policy(
         path,
         "ego",
         cfg.algorithm,
         scen.ego.accel_bounds_mps2,
-        learner.policy_state(),
+        learner.policy_state() if state is None else state,
         to_dict(cfg),
         to_dict(scen),
     )

@@ -1,0 +1,127 @@
+"""The hardened recipe against its targets (docs/stress.md), from grids' episodes.csv.
+
+    python benchmarks/hardened_tables.py runs/hardened_grid/episodes.csv \
+        [runs/hardened_seeded_grid/episodes.csv ...]
+
+Prints, in Markdown, one table per condition set (the grid's 12 cells, the held-out sets
+`heldout`, `heldout2`, `heldout3`, `heldout4`) and one over all of them: per policy, success,
+collisions with their Wilson 95 % interval, the worst condition pooled over seeds, the worst
+seed in any condition, time to merge and max jerk. Then the targets of issue "hardening": the
+hardened ego unshielded (<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no
+seed below 98 % in any condition, merge time <= gap acceptance's, max jerk <= the paper
+recipe's) on every set, and behind the shield 0 collisions in the held-out episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import numpy as np
+from robustness_tables import load, merge_time, pct, worst
+
+SETS = ("grid", "heldout", "heldout2", "heldout3", "heldout4")
+NAMES = {"grid": "the grid (12 cells)", "heldout": "held-out 1", "heldout2": "held-out 2",
+         "heldout3": "held-out 3", "heldout4": "held-out 4 (drawn before this round)"}  # fmt: skip
+
+
+def set_of(condition: str) -> str:
+    m = re.match(r"(heldout\d?)[ _]", condition)
+    return m.group(1) if m else "grid"
+
+
+def restrict(d: dict[str, np.ndarray], name: str | None) -> dict[str, np.ndarray]:
+    if name is None:
+        return d
+    keep = np.array([set_of(c) == name for c in d["condition"]])
+    return {k: v[keep] for k, v in d.items()}
+
+
+def wilson(k: float, n: int, z: float = 1.96) -> tuple[float, float]:
+    if n == 0:
+        return (0.0, 1.0)
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def table(g: dict[str, dict[str, np.ndarray]], name: str | None) -> list[str]:
+    out = [
+        "| policy | episodes | success | collisions [95 %] | worst condition | worst seed in a "
+        "condition | time to merge | max jerk |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for policy, full in g.items():
+        d = restrict(full, name)
+        n = len(d["success"])
+        if n == 0:
+            continue
+        k = float(d["collision"].sum())
+        lo, hi = wilson(k, n)
+        w = worst(d)
+        seed = "(one policy)" if len(np.unique(d["run"])) == 1 else (
+            f"{w.run.rsplit('_', 1)[-1]}: {100 * w.run_success:.1f} %")  # fmt: skip
+        out.append(
+            f"| {policy} | {n:,} | {pct(d['success'])} | {100 * k / n:.2f} % "
+            f"[{100 * lo:.2f}, {100 * hi:.2f}] ({int(k)}) | {w.cond} {100 * w.success:.1f} % | "
+            f"{seed} | {merge_time(d):.1f} s | {np.nanmean(d['max_abs_jerk_mps3']):.1f} m/s³ |"
+        )
+    return out
+
+
+def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
+    """Each target of the hardened ego (unshielded) on each set, and behind the shield."""
+    out = ["| set | collisions ≤ 0.1 % | success ≥ 99.5 % | no condition < 99 % | "
+           "no seed < 98 % in a condition | merge time ≤ gap's | max jerk ≤ paper's |",
+           "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name in SETS:
+        d, gap, paper = (restrict(g[p], name) for p in (policy, "gap", "paper"))
+        if not len(d["success"]):
+            continue
+        w = worst(d)
+        checks = [
+            (d["collision"].mean() <= 0.001, pct(d["collision"])),
+            (d["success"].mean() >= 0.995, pct(d["success"])),
+            (w.success >= 0.99, f"{100 * w.success:.1f} %"),
+            (w.run_success >= 0.98, f"{100 * w.run_success:.1f} %"),
+            (merge_time(d) <= merge_time(gap), f"{merge_time(d):.1f} vs {merge_time(gap):.1f} s"),
+            (
+                np.nanmean(d["max_abs_jerk_mps3"]) <= np.nanmean(paper["max_abs_jerk_mps3"]),
+                f"{np.nanmean(d['max_abs_jerk_mps3']):.1f} vs "
+                f"{np.nanmean(paper['max_abs_jerk_mps3']):.1f}",
+            ),
+        ]
+        cells = " | ".join(f"{'met' if ok else 'missed'} ({v})" for ok, v in checks)
+        out.append(f"| {NAMES[name]} | {cells} |")
+    shield = f"{policy}@shield"
+    if shield in g:
+        held = [restrict(g[shield], s) for s in SETS[1:]]
+        k = int(sum(h["collision"].sum() for h in held))
+        n = sum(len(h["collision"]) for h in held)
+        out += ["", f"Behind the shield, the held-out sets: {k} collisions in {n:,} episodes "
+                f"(target: 0 in ≥ 10,000)."]  # fmt: skip
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("episodes", nargs="+", help="grids' episodes.csv (their policies are merged)")
+    p.add_argument("--policy", default="hardened", help="the policy the targets are for")
+    args = p.parse_args()
+    g: dict[str, dict[str, np.ndarray]] = {}
+    for path in args.episodes:
+        g.update(load(path))
+    for name in (None, *SETS):
+        rows = table(g, name)
+        if len(rows) > 2:
+            print(f"\n### {'all sets' if name is None else NAMES[name]}\n")
+            print("\n".join(rows))
+    for policy in (args.policy, *(q for q in g if q != args.policy and q.startswith(args.policy)
+                                  and "@" not in q)):  # fmt: skip
+        print(f"\n### Targets: `{policy}`\n")
+        print("\n".join(targets(g, policy)))
+
+
+if __name__ == "__main__":
+    main()
