@@ -46,7 +46,8 @@ def load(path: str) -> dict[str, dict[str, np.ndarray]]:
     with open(path, newline="") as fh:
         for r in csv.DictReader(fh):
             c = cols[r["policy"]]
-            c["run"].append(Path(r["run"]).name)
+            run = Path(r["run"])  # a run folder, or a policy file in one (its folder names it)
+            c["run"].append(run.parent.name if run.suffix == ".pt" else run.name)
             c["condition"].append(r["condition"])
             for k in ("success", "collision", "truncation", "time_to_merge_s", "max_abs_jerk_mps3"):
                 c[k].append(float(r[k]))
