@@ -105,7 +105,8 @@ class CoTrainConfig(RunConfig):
     `sign * w * (V(s) - gamma * (1 - terminated) * V(s'))` per env step, V = max_a Q of the
     ego's network. It pays at once for putting the ego where the ego itself expects to do
     badly and sums to a constant over an episode, so it changes how fast adversaries learn,
-    not what is best for them. 0 (default) leaves the reward as the scenario defines it."""
+    not what is best for them. 0 (default) leaves the reward as the scenario defines it.
+    `highway.csv`'s reward per agent step includes it; its term sums do not."""
     highway_algorithm: str = "quadq"
     """The highway group's learner: "quadq" (a residual quadratic Q, `highway_*` settings) or
     "ppo" (IPPO / MAPPO, `[ppo]`; it learns once per collector batch, so

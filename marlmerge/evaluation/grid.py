@@ -430,7 +430,7 @@ def _overall_table(
         lines.append(
             f"| {p} | {len(mine)} | {rate['success']} | {rate['collision']} | "
             f"{rate['truncation']} | {worst_c}: {100 * pooled[worst_c]:.1f} | "
-            f"{Path(run).name} in {cond}: {100 * worst:.1f} | "
+            f"{run_name(run)} in {cond}: {100 * worst:.1f} | "
             f"{_fmt_mean(np.array([float(r['time_to_merge_s']) for r in mine]))} | "
             f"{_fmt_mean(np.array([float(r['max_abs_jerk_mps3']) for r in mine]))} |"
         )
@@ -438,6 +438,12 @@ def _overall_table(
 
 
 _OUTCOMES = ("success", "collision", "truncation")
+
+
+def run_name(run: str) -> str:
+    """A run as the tables name it: its folder (also for a policy file inside one)."""
+    path = Path(run)
+    return path.parent.name if path.suffix == ".pt" else path.name
 
 
 def _runs_table(rows: list[dict], policies: list[str], conds: list[str]) -> list[str]:
@@ -461,7 +467,7 @@ def _runs_table(rows: list[dict], policies: list[str], conds: list[str]) -> list
             succ = {c: [float(r["success"]) for r in mine if r["condition"] == c] for c in conds}
             worst = min(conds, key=lambda c: float(np.mean(succ[c])))
             lines.append(
-                f"| {p} | {Path(run).name} | "
+                f"| {p} | {run_name(run)} | "
                 f"{_fmt_rate2(np.array([float(r['success']) for r in mine]))} | "
                 f"{_fmt_rate2(np.array([float(r['collision']) for r in mine]))} | "
                 f"{worst}: {100 * np.mean(succ[worst]):.1f} |"
