@@ -50,6 +50,7 @@ class Selection:
         """One row per candidate: `sim_step`, `failures`, `success_rate`, `collision_rate`."""
         self.best_state: dict[str, Any] | None = None
         self.best_step = -1
+        self.best_failures = -1
 
     def _first_at(self) -> int:
         every = self.cfg.every_sim_steps
@@ -75,13 +76,9 @@ class Selection:
         )
         if self.best_state is None or failures <= self.best_failures:
             self.best_state = copy.deepcopy(learner.policy_state())
-            self.best_step = sim_steps
+            self.best_step, self.best_failures = sim_steps, failures
         while self.next_at <= sim_steps:
             self.next_at += self.cfg.every_sim_steps
-
-    @property
-    def best_failures(self) -> int:
-        return int(next(h["failures"] for h in self.history if h["sim_step"] == self.best_step))
 
     def evaluate(self, greedy: Callable[[Tensor], Tensor]) -> dict[str, Any]:
         if self._evaluate is None:  # the evaluation layer, imported when first needed
@@ -102,6 +99,7 @@ class Selection:
             "history": copy.deepcopy(self.history),
             "best_state": copy.deepcopy(self.best_state),
             "best_step": self.best_step,
+            "best_failures": self.best_failures,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -109,3 +107,4 @@ class Selection:
         self.history = copy.deepcopy(state["history"])
         self.best_state = copy.deepcopy(state["best_state"])
         self.best_step = state["best_step"]
+        self.best_failures = state["best_failures"]
