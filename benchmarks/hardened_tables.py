@@ -20,6 +20,8 @@ import re
 import numpy as np
 from robustness_tables import load, merge_time, pct, worst
 
+from marlmerge.evaluation.metrics import wilson_interval
+
 SETS = ("grid", "heldout", "heldout2", "heldout3", "heldout4")
 NAMES = {"grid": "the grid (12 cells)", "heldout": "held-out 1", "heldout2": "held-out 2",
          "heldout3": "held-out 3", "heldout4": "held-out 4 (drawn before this round)"}  # fmt: skip
@@ -37,15 +39,6 @@ def restrict(d: dict[str, np.ndarray], name: str | None) -> dict[str, np.ndarray
     return {k: v[keep] for k, v in d.items()}
 
 
-def wilson(k: float, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return (0.0, 1.0)
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z / (1 + z * z / n) * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
 def table(g: dict[str, dict[str, np.ndarray]], name: str | None) -> list[str]:
     out = [
         "| policy | episodes | success | collisions [95 %] | worst condition | worst seed in a "
@@ -58,7 +51,7 @@ def table(g: dict[str, dict[str, np.ndarray]], name: str | None) -> list[str]:
         if n == 0:
             continue
         k = float(d["collision"].sum())
-        lo, hi = wilson(k, n)
+        lo, hi = wilson_interval(k, n)
         w = worst(d)
         seed = "(one policy)" if len(np.unique(d["run"])) == 1 else (
             f"{w.run.rsplit('_', 1)[-1]}: {100 * w.run_success:.1f} %")  # fmt: skip

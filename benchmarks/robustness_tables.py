@@ -15,9 +15,10 @@ import argparse
 import csv
 from collections import defaultdict
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
+
+from marlmerge.evaluation.grid import run_name
 
 NAMES = {
     "gap": "gap acceptance",
@@ -46,8 +47,7 @@ def load(path: str) -> dict[str, dict[str, np.ndarray]]:
     with open(path, newline="") as fh:
         for r in csv.DictReader(fh):
             c = cols[r["policy"]]
-            run = Path(r["run"])  # a run folder, or a policy file in one (its folder names it)
-            c["run"].append(run.parent.name if run.suffix == ".pt" else run.name)
+            c["run"].append(run_name(r["run"]))
             c["condition"].append(r["condition"])
             for k in ("success", "collision", "truncation", "time_to_merge_s", "max_abs_jerk_mps3"):
                 c[k].append(float(r[k]))

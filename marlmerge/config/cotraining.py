@@ -12,10 +12,10 @@ from marlmerge.config.training import MAX_SEED, MAX_STEPS, RunConfig
 PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
 PHASES = ("pretrain", "adversary", "ego")
 HIGHWAY_ALGORITHMS = ("quadq", "ppo")
+"""The highway group's learners: the paper's quadratic Q (off-policy) or PPO (`[ppo]`)."""
 HIGHWAY_ACTIONS = ("accel_offset", "desired_speed")
 """What a learned highway driver chooses (`marlmerge.learners.highway`): an adjustment to its
 IDM acceleration, or the desired speed its IDM drives towards (PPO only)."""
-"""The highway group's learners: the paper's quadratic Q (off-policy) or PPO (`[ppo]`)."""
 PPO_CRITICS = ("local", "central")
 """IPPO's per-agent critic or MAPPO's centralised one (`marlmerge.learners.ppo`)."""
 

@@ -276,6 +276,15 @@ def highway_bounds(cfg: CoTrainConfig) -> tuple[float, float]:
     return OFFSET_BOUNDS_MPS2
 
 
+def highway_snapshot(
+    cfg: CoTrainConfig, scen: ScenarioConfig, weights: dict[str, Tensor]
+) -> HighwayPolicy:
+    """The greedy highway policy of pool weights of `cfg`'s highway learner and action."""
+    return snapshot_policy(
+        weights, cfg.hidden, scen, highway_bounds(cfg), cfg.highway_algorithm, cfg.highway_action
+    )
+
+
 def explore(group: LearningGroup, start: float, end: float, decay_sim_steps: int) -> None:
     """The group explores this phase: Gaussian noise whose std falls linearly from `start` to
     `end` m/s^2 over `decay_sim_steps` of the phase (`explore_step`), then constant."""
@@ -661,11 +670,7 @@ class CoTrainRun:
 
     def snapshot(self, weights: dict[str, Tensor]) -> HighwayPolicy:
         """The greedy highway policy of pool weights of this run's highway learner."""
-        cfg = self.cfg
-        return snapshot_policy(
-            weights, cfg.hidden, self.scen, highway_bounds(cfg), cfg.highway_algorithm,
-            cfg.highway_action,
-        )  # fmt: skip
+        return highway_snapshot(self.cfg, self.scen, weights)
 
     def close(self) -> None:
         for log in (self.ego_log, self.hw_log, self.loss_log):
@@ -707,12 +712,7 @@ def select_ego(
     each pool snapshot, the same episodes for all; the fewest failures wins, the latest on ties."""
     from marlmerge.evaluation.rollout import evaluate_policy
 
-    opponents: list[HighwayPolicy | None] = [None] + [
-        snapshot_policy(
-            s, cfg.hidden, scen, highway_bounds(cfg), cfg.highway_algorithm, cfg.highway_action
-        )
-        for s in pool
-    ]
+    opponents: list[HighwayPolicy | None] = [None] + [highway_snapshot(cfg, scen, s) for s in pool]
     failures: list[list[int]] = []
     for _, weights in candidates:
         net = frozen_net(weights, ego_obs_size(scen), cfg.hidden, scen.ego.accel_bounds_mps2)

@@ -49,8 +49,7 @@ class Selection:
         self.history: list[dict[str, float]] = []
         """One row per candidate: `sim_step`, `failures`, `success_rate`, `collision_rate`."""
         self.best_state: dict[str, Any] | None = None
-        self.best_step = -1
-        self.best_failures = -1
+        """The `policy_state` of `best`."""
 
     def _first_at(self) -> int:
         every = self.cfg.every_sim_steps
@@ -74,11 +73,15 @@ class Selection:
                 "collision_rate": result["collision_rate"],
             }
         )
-        if self.best_state is None or failures <= self.best_failures:
+        if self.best["sim_step"] == sim_steps:
             self.best_state = copy.deepcopy(learner.policy_state())
-            self.best_step, self.best_failures = sim_steps, failures
         while self.next_at <= sim_steps:
             self.next_at += self.cfg.every_sim_steps
+
+    @property
+    def best(self) -> dict[str, float]:
+        """The candidate kept so far: the fewest failures, the latest on ties."""
+        return min(reversed(self.history), key=lambda h: h["failures"])
 
     def evaluate(self, greedy: Callable[[Tensor], Tensor]) -> dict[str, Any]:
         if self._evaluate is None:  # the evaluation layer, imported when first needed
@@ -90,7 +93,7 @@ class Selection:
 
     def summary(self) -> dict[str, Any]:
         """selection.json: the candidates and the one kept."""
-        return {"kept_sim_step": self.best_step, "episodes": self.cfg.episodes,
+        return {"kept_sim_step": self.best["sim_step"], "episodes": self.cfg.episodes,
                 "candidates": self.history}  # fmt: skip
 
     def state_dict(self) -> dict[str, Any]:
@@ -98,13 +101,9 @@ class Selection:
             "next_at": self.next_at,
             "history": copy.deepcopy(self.history),
             "best_state": copy.deepcopy(self.best_state),
-            "best_step": self.best_step,
-            "best_failures": self.best_failures,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.next_at = state["next_at"]
         self.history = copy.deepcopy(state["history"])
         self.best_state = copy.deepcopy(state["best_state"])
-        self.best_step = state["best_step"]
-        self.best_failures = state["best_failures"]
