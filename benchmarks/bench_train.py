@@ -5,7 +5,22 @@
 - `wall_s`: the training loop, compilation included; evaluation and plots are timed apart
   (`eval_and_plots_s`).
 
+With `--seeds S`, the same run measures, one after the other (`--modes`, default `one,vec`):
+
+- `one`: one seed (`marlmerge train --seeds 0`, the same run as `marlmerge train`);
+- `vec`: S seeds in one process (`marlmerge train --seeds 0-S`), with `seeds_wall_ratio`, its
+  training loop's wall time over one seed's (the target is <= 2.5 at S = 8), and
+  `sweep_throughput_ratio` (S / that);
+- `workers`: S seeds in `--workers` processes, each training its group of seeds in one process
+  (`marlmerge sweep --vectorized --workers W`), evaluations included, with `workers_wall_ratio`
+  against one seed's run with its evaluation;
+- `sweep`: today's sweep of the S seeds, one process per seed on `--workers` workers, and
+  `vectorized_speedup`: its wall time over the `workers` run's (both with evaluations).
+
     python benchmarks/bench_train.py [--preset quick] [--set key=value ...]
+    python benchmarks/bench_train.py --preset paper --seeds 8
+    python benchmarks/bench_train.py --preset paper --seeds 8 --workers 2 --modes one,vec,workers
+    python benchmarks/bench_train.py --preset paper --seeds 5 --workers 2 --modes workers,sweep
 """
 
 from __future__ import annotations
@@ -16,41 +31,110 @@ import os
 import platform
 import tempfile
 import time
+from pathlib import Path
 
 from marlmerge.cli import _parse_sets
-from marlmerge.training.train import load_train_config, train
+from marlmerge.training.train import TrainConfig, load_train_config, train
+
+
+def machine() -> str:
+    return f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}"
+
+
+def single_run(cfg: TrainConfig) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        result = train(cfg, out, progress=False)
+        total = time.perf_counter() - t0
+        timing = json.loads(open(os.path.join(out, "timing.json")).read())
+    return {
+        "machine": machine(),
+        "preset": cfg.name,
+        "total_sim_steps": result.sim_steps,
+        "updates": result.updates,
+        "update_path": cfg.update_path,
+        "updates_per_s": timing["updates_per_s"],
+        "env_steps_per_s": timing["env_steps_per_s"],
+        "compile_s": timing["compile_s"],
+        "wall_s": timing["wall_s"],
+        "eval_and_plots_s": total - timing["wall_s"],
+        "evaluation": result.evaluation,
+    }
+
+
+def seeds_run(cfg: TrainConfig, seeds: list[int]) -> dict:
+    """One `train --seeds` run: its loop's wall time and each seed's evaluation."""
+    from marlmerge.training.seeds import train_seeds
+
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        results = train_seeds(cfg, seeds, out, progress=False)
+        total = time.perf_counter() - t0
+    r = results[0]
+    return {
+        "seeds": seeds,
+        "wall_s": r.wall_s,
+        "update_s": r.update_s,
+        "collect_s": r.collect_s,
+        "compile_s": r.compile_s,
+        "with_evaluation_s": total,
+        "updates_per_s": sum(x.updates for x in results) / max(r.update_s, 1e-9),
+        "success_rate": [x.evaluation and x.evaluation["success_rate"] for x in results],
+    }
+
+
+def timed_sweep(preset: str, sets: dict, seeds: list[int], workers: int, vectorized: bool) -> dict:
+    from marlmerge.training.sweep import sweep
+
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        summary = sweep(
+            preset, seeds, Path(out), sets, "process", workers, progress=False,
+            vectorized=vectorized,
+        )  # fmt: skip
+        wall = time.perf_counter() - t0
+    success = [summary["per_seed"][str(s)]["success_rate"] for s in seeds]
+    return {"workers": workers, "with_evaluation_s": wall, "success_rate": success}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--preset", default="quick")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--seeds", type=int, default=None, help="compare S seeds in one run to 1")
+    p.add_argument("--workers", type=int, default=2, help="processes of `workers` and `sweep`")
+    p.add_argument("--modes", default="one,vec", help="of one, vec, workers, sweep")
     args = p.parse_args()
-    cfg = load_train_config(args.preset, **_parse_sets(args.set))
-    with tempfile.TemporaryDirectory() as out:
-        t0 = time.perf_counter()
-        result = train(cfg, out, progress=False)
-        total = time.perf_counter() - t0
-        timing = json.loads(open(os.path.join(out, "timing.json")).read())
-    print(
-        json.dumps(
-            {
-                "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-                f"python {platform.python_version()}",
-                "preset": cfg.name,
-                "total_sim_steps": result.sim_steps,
-                "updates": result.updates,
-                "update_path": cfg.update_path,
-                "updates_per_s": timing["updates_per_s"],
-                "env_steps_per_s": timing["env_steps_per_s"],
-                "compile_s": timing["compile_s"],
-                "wall_s": timing["wall_s"],
-                "eval_and_plots_s": total - timing["wall_s"],
-                "evaluation": result.evaluation,
-            },
-            indent=2,
-        )
-    )
+    sets = _parse_sets(args.set)
+    cfg = load_train_config(args.preset, **sets)
+    if args.seeds is None:
+        print(json.dumps(single_run(cfg), indent=2))
+        return
+    modes = args.modes.split(",")
+    unknown = sorted(set(modes) - {"one", "vec", "workers", "sweep"})
+    if unknown:
+        raise SystemExit(f"--modes: unknown {unknown}; choose from one, vec, workers, sweep")
+    seeds = list(range(cfg.seed, cfg.seed + args.seeds))
+    out: dict = {"machine": machine(), "preset": cfg.name, "update_path": cfg.update_path}
+    if "one" in modes:
+        out["one_seed"] = seeds_run(cfg, seeds[:1])
+    if "vec" in modes:
+        out["vectorized"] = seeds_run(cfg, seeds)
+    if "one" in modes and "vec" in modes:
+        ratio = out["vectorized"]["wall_s"] / out["one_seed"]["wall_s"]
+        out["seeds_wall_ratio"] = ratio
+        out["sweep_throughput_ratio"] = args.seeds / ratio
+    if "workers" in modes:
+        out["workers"] = timed_sweep(args.preset, sets, seeds, args.workers, vectorized=True)
+        if "one" in modes:
+            one = out["one_seed"]["with_evaluation_s"]
+            out["workers_wall_ratio"] = out["workers"]["with_evaluation_s"] / one
+    if "sweep" in modes:
+        out["sweep"] = timed_sweep(args.preset, sets, seeds, args.workers, vectorized=False)
+        if "workers" in modes:
+            vec = out["workers"]["with_evaluation_s"]
+            out["vectorized_speedup"] = out["sweep"]["with_evaluation_s"] / vec
+    print(json.dumps(out, indent=2))
 
 
 if __name__ == "__main__":

@@ -61,22 +61,29 @@ def _parse_sets(items: list[str]) -> dict:
     return out
 
 
-def _run_config(cls: type, out: Path, cfg: Any, sets: dict[str, Any], resume: bool) -> Any:
-    """The config a run in `out` trains with: `cfg` for a new run, the checkpoint's when
-    resuming (a `--set` that differs from it is an error naming the key)."""
+def _run_config(
+    cls: type,
+    out: Path,
+    cfg: Any,
+    sets: dict[str, Any],
+    resume: bool,
+    name: str = "checkpoint.pt",
+) -> Any:
+    """The config a run in `out` (checkpoint `name`) trains with: `cfg` for a new run, the
+    checkpoint's when resuming (a `--set` that differs from it is an error naming the key)."""
     from marlmerge.config.presets import run_scenario
     from marlmerge.training.checkpoint import resume_config
 
     run_scenario(cfg)
-    has_run = (out / "checkpoint.pt").exists()
+    has_run = (out / name).exists()
     if has_run and not resume:
         raise ValueError(
             f"{out} already holds a run: pass --resume to continue it, or --out to "
             "start a new one elsewhere"
         )
     if resume and not has_run:
-        raise ValueError(f"--resume: no checkpoint at {out / 'checkpoint.pt'}")
-    return resume_config(cls, out, cfg, sets) if resume else cfg
+        raise ValueError(f"--resume: no checkpoint at {out / name}")
+    return resume_config(cls, out, cfg, sets, name) if resume else cfg
 
 
 def train_cmd(args: argparse.Namespace) -> int:
@@ -92,6 +99,8 @@ def train_cmd(args: argparse.Namespace) -> int:
 
         cfg = from_dict(TrainConfig, with_overrides(to_dict(TrainConfig()), sets))
     out = Path(args.out or f"runs/{cfg.name}")
+    if args.seeds is not None:
+        return _train_seeds_cmd(args, cfg, sets, out)
     cfg = _run_config(TrainConfig, out, cfg, sets, args.resume)
     print(
         f"training {cfg.name!r} on scenario {cfg.scenario!r}: {cfg.total_sim_steps:,} simulator "
@@ -111,6 +120,37 @@ def train_cmd(args: argparse.Namespace) -> int:
     if result.evaluation is not None:
         _print_evaluation(result.evaluation)
     print(f"logs, checkpoint, policy and figures in {out}")
+    return 0
+
+
+def _train_seeds_cmd(args: argparse.Namespace, cfg: Any, sets: dict[str, Any], out: Path) -> int:
+    """`train --seeds`: the seeds in one process (`marlmerge.training.seeds`)."""
+    from marlmerge.training.seeds import CHECKPOINT_NAME, check_seeds, train_seeds
+    from marlmerge.training.sweep import parse_seeds
+    from marlmerge.training.train import TrainConfig
+
+    seeds = parse_seeds(args.seeds)
+    if "seed" in sets:
+        raise ValueError(f"--seeds {args.seeds} and --set seed={sets['seed']}: give one of them")
+    check_seeds(cfg, seeds)
+    cfg = _run_config(TrainConfig, out, cfg, sets, args.resume, CHECKPOINT_NAME)
+    print(
+        f"training {cfg.name!r} on scenario {cfg.scenario!r}: {len(seeds)} seeds "
+        f"({', '.join(map(str, seeds))}) in one process, {cfg.total_sim_steps:,} simulator steps "
+        f"each in {cfg.num_worlds} worlds, writing {out}/seed_*",
+        flush=True,
+    )
+    results = train_seeds(cfg, seeds, out, resume=args.resume, progress=not args.no_progress)
+    for seed, result in zip(seeds, results, strict=True):
+        print(f"seed {seed}: {result.sim_steps:,} simulator steps, {result.updates:,} updates")
+        if result.evaluation is not None:
+            _print_evaluation(result.evaluation)
+    r = results[0]
+    if not r.already_finished:
+        print(
+            f"done in {r.wall_s:.0f} s (updates {r.update_s:.0f} s, env {r.collect_s:.0f} s); "
+            f"runs in {out}/seed_*"
+        )
     return 0
 
 
@@ -322,9 +362,11 @@ def sweep_cmd(args: argparse.Namespace) -> int:
         args.workers,
         args.address,
         progress=not args.no_progress,
+        vectorized=args.vectorized,
     )
     print((out / "summary.md").read_text())
-    print(f"{len(seeds)} seeds on the {args.backend} backend; runs in {out}/seed_*")
+    where = "in one process" if args.vectorized else f"on the {args.backend} backend"
+    print(f"{len(seeds)} seeds {where}; runs in {out}/seed_*")
     return 0 if summary else 1
 
 
@@ -418,6 +460,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="KEY=VALUE",
         help="override a TrainConfig field, e.g. --set seed=1 (repeatable)",
+    )
+    t.add_argument(
+        "--seeds",
+        default=None,
+        help="train these seeds in one process (e.g. 0-7 or 0,2,5) into OUT/seed_S, each "
+        "bit for bit its own single run",
     )
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_cmd)
@@ -554,6 +602,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field"
     )
     w.add_argument("--no-progress", action="store_true")
+    w.add_argument(
+        "--vectorized",
+        action="store_true",
+        help="train all seeds in this process, updated together (train recipes; "
+        "each seed bit for bit its own run)",
+    )
     _backend_args(w)
     w.set_defaults(func=sweep_cmd)
 

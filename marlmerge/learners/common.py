@@ -1,5 +1,6 @@
 """What the torchrl-loss learners (DQN, TD3) share: randomness without the global RNG, the MLP,
-the compiled-step helpers and `BaselineLearner`, the learner protocol over a torchrl loss.
+the compiled-step helpers and `BaselineLearner`, the learner protocol over a torchrl loss; and
+`sample_uniform`, the quadratic-Q fast path's minibatch draw.
 
 A learner owns its networks, loss, optimiser(s), target updater and counters; the training loop
 owns the env, the replay (packed rows ``[obs (d) | action | reward | terminated | next_obs (d)]``,
@@ -22,6 +23,8 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
+from torchrl.data.replay_buffers.samplers import RandomSampler
+from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.modules import MLP
 
 from marlmerge.learners.base import Learner
@@ -153,3 +156,24 @@ class BaselineLearner(Learner):
             return torch.empty(0)
         mbs = replay.sample(owed * batch_size).view(owed, batch_size, -1)
         return torch.stack([self.update(mbs[j]) for j in range(owed)])
+
+
+def sample_uniform(replay: Any, n: int) -> Tensor:
+    """`replay.sample(n)` of a plain torchrl `ReplayBuffer` of packed rows (uniform sampler,
+    one-dimensional tensor storage, no transforms): the same draw from the same generator,
+    without the buffer's per-call machinery (locks, collation, transform checks), which costs
+    more than the draw (about 30 against 80 us for 320 rows; the fast path samples every 10
+    updates). Any other buffer is sampled by its own `sample`. `tests/test_vectorized_seeds.py`
+    checks the two against each other."""
+    storage = getattr(replay, "_storage", None)
+    plain = (
+        type(getattr(replay, "_sampler", None)) is RandomSampler
+        and isinstance(storage, TensorStorage)
+        and storage.ndim == 1
+        and isinstance(storage._storage, Tensor)
+        and not len(getattr(replay, "_transform", None) or ())
+    )
+    if not plain or len(storage) == 0:  # type: ignore[arg-type]
+        return replay.sample(n)
+    index = torch.randint(0, len(storage), (n,), generator=storage._rng)  # type: ignore[union-attr]
+    return storage._storage[index]  # type: ignore[union-attr]

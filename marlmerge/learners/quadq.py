@@ -538,7 +538,7 @@ def unpack_rows(
 
 
 @dataclass(frozen=True)
-class _FastSpec:
+class FastSpec:
     """Constants baked into the fast update (Python floats, so compile treats them as such)."""
 
     obs_dim: int
@@ -554,7 +554,7 @@ class _FastSpec:
     eps: float
 
 
-def _param_layout(obs_dim: int, hidden: int) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
+def param_layout(obs_dim: int, hidden: int) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
     """Order and shapes of the :class:`QuadraticQNet` parameters in the flat buffers."""
     h3 = 3 * hidden
     return [
@@ -567,15 +567,15 @@ def _param_layout(obs_dim: int, hidden: int) -> list[tuple[tuple[str, ...], tupl
 
 def _unflatten(flat: Tensor, obs_dim: int, hidden: int) -> list[Tensor]:
     out, o = [], 0
-    for _, shape in _param_layout(obs_dim, hidden):
+    for _, shape in param_layout(obs_dim, hidden):
         n = math.prod(shape)
         out.append(flat[o : o + n].view(shape))
         o += n
     return out
 
 
-def _fast_chunk(
-    spec: _FastSpec,
+def fast_chunk(
+    spec: FastSpec,
     flat: Tensor,
     target_flat: Tensor,
     exp_avg: Tensor,
@@ -731,7 +731,7 @@ class FastQuadQUpdater:
         self.lr = float(lr)
         self.betas = (float(betas[0]), float(betas[1]))
         self.num_updates = 0
-        self.spec = _FastSpec(
+        self.spec = FastSpec(
             obs_dim=net.obs_dim,
             hidden=net.hidden_dim,
             a_min=net.a_min,
@@ -750,7 +750,7 @@ class FastQuadQUpdater:
         self.target_flat = self._alias(loss.target_value_network_params)
         self.exp_avg = torch.zeros_like(self.flat)
         self.exp_avg_sq = torch.zeros_like(self.flat)
-        self._eager_chunk = functools.partial(_fast_chunk, self.spec)
+        self._eager_chunk = functools.partial(fast_chunk, self.spec)
         self._fn: Callable[..., Tensor] = self._eager_chunk
         self.compile_time_s: float | None = None
         if compile:
@@ -761,7 +761,7 @@ class FastQuadQUpdater:
     def _alias(self, params: TensorDictParams) -> Tensor:
         """Copy ``params`` into one flat buffer and re-point each tensor to a view of it."""
         s = self.spec
-        layout = _param_layout(s.obs_dim, s.hidden)
+        layout = param_layout(s.obs_dim, s.hidden)
         tensors = [params.get(key) for key, _ in layout]
         for t, (key, shape) in zip(tensors, layout, strict=True):
             if tuple(t.shape) != shape:

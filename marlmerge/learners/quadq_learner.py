@@ -13,6 +13,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from marlmerge.learners.base import Learner
+from marlmerge.learners.common import sample_uniform
 from marlmerge.learners.quadq import (
     FastQuadQUpdater,
     GaussianExploration,
@@ -115,10 +116,8 @@ class QuadQLearner(Learner):
         sampling call; the rest of `owed` waits for the next call); the torchrl path one by one."""
         losses: list[Tensor] = []
         if self.fast is not None:
-            k = self.fast.k
-            for _ in range(owed // k):
-                mb = replay.sample(k * batch_size).view(k, batch_size, -1)
-                losses.append(self.fast.step(mb))
+            for _ in range(owed // self.fast.k):
+                losses.append(self.fast.step(self.sample_chunk(replay, batch_size)))
             return torch.cat(losses) if losses else torch.empty(0)
         for _ in range(owed):
             out = self.loss_module(unpack_rows(replay.sample(batch_size), self.obs_dim))
@@ -128,6 +127,12 @@ class QuadQLearner(Learner):
             self.target_updater.step()
             losses.append(out["loss_value"].detach())
         return torch.stack(losses) if losses else torch.empty(0)
+
+    def sample_chunk(self, replay: Any, batch_size: int) -> Tensor:
+        """The minibatches of one fast-path call, drawn in one sampling call: [k, batch, row]."""
+        assert self.fast is not None
+        k = self.fast.k
+        return sample_uniform(replay, k * batch_size).view(k, batch_size, -1)
 
     def state_dict(self) -> dict[str, Any]:
         torchrl_path = self.fast is None

@@ -19,15 +19,18 @@ def saved_config(cls: type[C], data: dict[str, Any]) -> C:
     return from_dict(cls, upgrade_flat_keys(data))
 
 
-def resume_config(cls: type[C], out: Path, requested: C, set_keys: Iterable[str]) -> C:
-    """The config of the run in `out` that `--resume` continues. A key given with `--set` must
-    agree with it (a resumed run continues that run: nothing is resumable with other values)."""
-    saved = saved_config(cls, files.load(out / "checkpoint.pt", "checkpoint")["config"])
+def resume_config(
+    cls: type[C], out: Path, requested: C, set_keys: Iterable[str], name: str = "checkpoint.pt"
+) -> C:
+    """The config of the run in `out` (checkpoint `name`) that `--resume` continues. A key given
+    with `--set` must agree with it (a resumed run continues that run: nothing is resumable
+    with other values)."""
+    saved = saved_config(cls, files.load(out / name, "checkpoint")["config"])
     for key in set_keys:
         if get_dotted(saved, key) != get_dotted(requested, key):
             raise ValueError(
                 f"--set {key}={get_dotted(requested, key)!r} differs from the run being resumed "
-                f"({key} = {get_dotted(saved, key)!r} in {out / 'checkpoint.pt'}): a resumed run "
+                f"({key} = {get_dotted(saved, key)!r} in {out / name}): a resumed run "
                 "continues with its own config; start a new run with --out to change it"
             )
     return saved

@@ -78,16 +78,28 @@ class LearningGroup:
         self.experience_sim_steps += sim_steps
 
     def learn(self) -> None:
-        """Run the updates owed to the experience so far (skipped, not postponed, while the
-        replay holds fewer than `learning_starts` transitions). An on-policy learner (PPO)
-        learns from the rollout just stored, as many updates as it makes of one."""
+        """Run the updates owed to the experience so far (`take_owed`)."""
+        owed = self.take_owed()
+        if owed is not None:
+            self.record(self.learner.learn(self.replay, owed, self.batch_size))
+
+    def take_owed(self) -> int | None:
+        """The updates owed to the experience so far: `updates_per_sim_step` per simulator
+        step, less those made. While the replay holds fewer than `learning_starts`
+        transitions they are skipped, not postponed (counted as made; None returned). An
+        on-policy learner (PPO) learns from the rollout just stored, as many updates as it
+        makes of one."""
         owed = max(int(self.experience_sim_steps * self.updates_per_sim_step) - self.updates, 0)
         if self.learner.on_policy:
-            owed = len(self.replay)
-        elif len(self.replay) < self.learning_starts:
+            return len(self.replay)
+        if len(self.replay) < self.learning_starts:
             self.updates += owed
-            return
-        losses = self.learner.learn(self.replay, owed, self.batch_size)  # [n <= owed]
+            return None
+        return owed
+
+    def record(self, losses: Tensor) -> None:
+        """Count the updates just made (their losses [n]); `on_loss` sees every
+        `loss_log_every`-th."""
         if self.on_loss is not None:
             first = (-(self.updates + 1)) % self.loss_log_every  # update n = updates + j + 1
             for j in range(first, len(losses), self.loss_log_every):

@@ -165,9 +165,11 @@ def sweep(
     workers: int | None = None,
     address: str | None = None,
     progress: bool = True,
+    vectorized: bool = False,
 ) -> dict[str, Any]:
     """Train `preset` once per seed on `backend` and summarise; see the module docstring. The
-    preset's `kind` says whether it is a `train` or a `cotrain` recipe."""
+    preset's `kind` says whether it is a `train` or a `cotrain` recipe. `vectorized`: all seeds
+    in this process (`marlmerge.training.seeds`; `train` recipes only), not one task each."""
     import time
 
     from marlmerge.config.presets import preset_kind
@@ -178,6 +180,19 @@ def sweep(
     if "seed" in overrides:
         raise ValueError("sweep: give the seeds with --seeds, not --set seed=...")
     out = Path(out_dir)
+    if vectorized:
+        if kind != "train":
+            raise ValueError(f"sweep --vectorized: {preset!r} is a {kind} recipe; only train")
+        t0 = time.perf_counter()
+        groups = seed_groups(seeds, backend, workers)
+        tasks_v = [
+            GroupTask(str(preset), tuple(sorted(overrides.items())), g, str(out)) for g in groups
+        ]
+        check_group_tasks(tasks_v)
+        runs = run_tasks(run_group, tasks_v, backend, None, workers, address)
+        results = [ev for group in runs for ev in group]
+        where = f"{backend} (vectorized: {len(groups)} group{'s' * (len(groups) > 1)})"
+        return _write_summary(out, seeds, results, str(preset), kind, where, t0)
     tasks = [
         SeedTask(kind, str(preset), tuple(sorted(overrides.items())), s, str(out / f"seed_{s}"))
         for s in seeds
@@ -198,11 +213,91 @@ def sweep(
         workers,
         address,
     )
-    wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
+    return _write_summary(out, seeds, results, str(preset), kind, backend, t0)
+
+
+def _write_summary(
+    out: Path, seeds: list[int], results: list[dict], preset: str, kind: str, backend: str,
+    t0: float,
+) -> dict[str, Any]:  # fmt: skip
+    import time
+
+    wall = time.perf_counter() - t0
     summary = summarize(dict(zip(seeds, results, strict=True)))
-    summary.update(preset=str(preset), kind=kind, backend=backend, wall_s=wall)
+    summary.update(preset=preset, kind=kind, backend=backend, wall_s=wall)
     write_text(out / "summary.json", json.dumps(summary, indent=1))
-    (out / "summary.md").write_text(summary_markdown(summary, str(preset), backend, wall))
+    (out / "summary.md").write_text(summary_markdown(summary, preset, backend, wall))
     return summary
+
+
+@dataclass(frozen=True)
+class GroupTask:
+    """Seeds trained together in one process (`train_seeds`), one task of a vectorised sweep."""
+
+    preset: str
+    overrides: tuple[tuple[str, Any], ...]
+    seeds: list[int]
+    out_dir: str
+
+    @property
+    def checkpoint_name(self) -> str:
+        return f"seeds_checkpoint_{'_'.join(map(str, self.seeds))}.pt"
+
+
+def seed_groups(seeds: list[int], backend: str, workers: int | None) -> list[list[int]]:
+    """The seeds split into one group per worker (consecutive, sizes differing by one at most):
+    all in one group on the serial backend."""
+    import os
+
+    n = 1 if backend == "serial" else min(len(seeds), workers or os.cpu_count() or 1)
+    size, extra = divmod(len(seeds), n)
+    groups, start = [], 0
+    for g in range(n):
+        end = start + size + (g < extra)
+        groups.append(seeds[start:end])
+        start = end
+    return groups
+
+
+def check_group_tasks(tasks: list[GroupTask]) -> None:
+    """Before any work: the recipe loads and can be vectorised, and the sweep folder holds no
+    run that these groups would not continue (single runs, or other groups)."""
+    from marlmerge.training.seeds import check_seeds
+    from marlmerge.training.train import load_train_config
+
+    out = Path(tasks[0].out_dir)
+    cfg = load_train_config(tasks[0].preset, **dict(tasks[0].overrides))
+    check_seeds(cfg, [s for t in tasks for s in t.seeds])
+    single = [s for t in tasks for s in t.seeds if (out / f"seed_{s}" / "checkpoint.pt").exists()]
+    if single:
+        raise ValueError(
+            f"sweep --vectorized: {out} holds single runs of seeds {single} (a sweep without "
+            "--vectorized): finish it as it started, or use another --out"
+        )
+    mine = {t.checkpoint_name for t in tasks}
+    other = sorted(p.name for p in out.glob("seeds_checkpoint_*.pt") if p.name not in mine)
+    if other:
+        raise ValueError(
+            f"sweep --vectorized: {out} holds seed groups {other}, not these: run it again with "
+            "the seeds and --workers it started with, or use another --out"
+        )
+
+
+def run_group(task: GroupTask) -> list[dict[str, Any]]:
+    """Train (or resume, or reuse) one group of seeds in this process; returns each seed's
+    evaluation."""
+    from marlmerge.training.seeds import train_seeds
+    from marlmerge.training.train import load_train_config
+
+    out = Path(task.out_dir)
+    cfg = load_train_config(task.preset, **dict(task.overrides))
+    resume = (out / task.checkpoint_name).exists()
+    results = train_seeds(
+        cfg, task.seeds, out, resume=resume, progress=False, checkpoint_name=task.checkpoint_name
+    )
+    missing = [s for s, r in zip(task.seeds, results, strict=True) if r.evaluation is None]
+    if missing:
+        raise ValueError(f"{out}: seeds {missing} wrote no evaluation (eval_episodes = 0?)")
+    return [json.loads((out / f"seed_{s}" / "evaluation.json").read_text()) for s in task.seeds]

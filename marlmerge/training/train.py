@@ -53,6 +53,7 @@ from marlmerge.training.logs import (
 from marlmerge.training.loop import (
     GroupPolicy,
     LearningGroup,
+    LoopTimes,
     make_collector,
     make_replay,
     run_loop,
@@ -205,7 +206,7 @@ def train(
     files.write_text(out / "config.json", json.dumps(to_dict(cfg), indent=1))
     torch.set_num_threads(cfg.threads)
     if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
-        return _finish_resumed(cfg, out, ckpt)
+        return finish_resumed(cfg, out, ckpt)
 
     env = make_env(cfg)
     scen, k = env.cfg, env.cfg.sim.action_repeat
@@ -239,25 +240,8 @@ def train(
 
     def checkpoint() -> None:
         logs.flush()
-        save_checkpoint(
-            ckpt_path,
-            {
-                "version": CHECKPOINT_VERSION,
-                "config": to_dict(cfg),
-                "algorithm": cfg.algorithm,
-                "group": ego.state_dict(),
-                "env": env.sim_state(),
-                "sim_steps": sim_steps,
-                "updates": ego.updates,
-                "egos": logs.tracker.egos,
-                "tracker_sums": logs.tracker.sums.copy(),
-                "tracker_steps": logs.tracker.steps.copy(),
-                "loss_rows": logs.loss.rows,
-                "ego_rows": logs.egos.rows,
-                "levels": None if levels is None else levels.state_dict(),
-                "select": None if selection is None else selection.state_dict(),
-            },
-        )
+        state = run_state(cfg, ego, sim_steps, logs, levels, selection)
+        save_checkpoint(ckpt_path, {**state, "env": env.sim_state()})
 
     def on_batch(batch, n_sim: int) -> None:
         nonlocal sim_steps, recent
@@ -266,7 +250,7 @@ def train(
         recent = (recent + logs.tracker.update(batch, sim_steps, k, logs.egos))[-200:]
         if levels is not None:
             score_levels(levels, batch)
-        _show(bar, n_sim, logs.tracker.egos, recent)
+        show_progress(bar, n_sim, logs.tracker.egos, recent)
 
     def after_updates() -> bool:
         nonlocal next_ckpt
@@ -288,20 +272,68 @@ def train(
     wall = time.perf_counter() - t_start
     if bar is not None:
         bar.close()
-    logs.close()
-    finished = sim_steps >= cfg.total_sim_steps
-    greedy = ego.learner.greedy
-    if finished and selection is not None:
+    run = RunEnd(cfg, out, ego, logs, selection, sim_steps)
+    return finish_run(run, wall, times, ego.learner.compile_time_s, k)
+
+
+@dataclass
+class RunEnd:
+    """What a run's end needs of it (`finish_run`)."""
+
+    cfg: TrainConfig
+    out: Path
+    ego: LearningGroup
+    logs: RunLogs
+    selection: Selection | None
+    sim_steps: int
+
+
+def finish_run(
+    run: RunEnd, wall: float, times: LoopTimes, compile_s: float | None, k: int
+) -> TrainResult:
+    """Close the logs; if the training is complete, evaluate the greedy policy (the selected
+    one with `[select]`) and draw the figures; write `timing.json`."""
+    run.logs.close()
+    finished = run.sim_steps >= run.cfg.total_sim_steps
+    greedy = run.ego.learner.greedy
+    if finished and run.selection is not None:
         from marlmerge.learners.loading import load_policy
 
-        greedy = load_policy(out / "policy.pt")
-    evaluation = _evaluate_and_plot(cfg, out, greedy) if finished else None
+        greedy = load_policy(run.out / "policy.pt")
+    evaluation = evaluate_and_plot(run.cfg, run.out, greedy) if finished else None
     result = TrainResult(
-        out, sim_steps, ego.updates, logs.tracker.egos, wall, times.update_s, times.collect_s,
-        ego.learner.compile_time_s, evaluation,
+        run.out, run.sim_steps, run.ego.updates, run.logs.tracker.egos, wall, times.update_s,
+        times.collect_s, compile_s, evaluation,
     )  # fmt: skip
-    _write_timing(out, result, k)
+    write_timing(run.out, result, k)
     return result
+
+
+def run_state(
+    cfg: TrainConfig,
+    ego: LearningGroup,
+    sim_steps: int,
+    logs: RunLogs,
+    levels: LevelReplay | None,
+    selection: Selection | None,
+) -> dict[str, Any]:
+    """What `checkpoint.pt` holds of a run besides its env (`"env"`): the config, the learning
+    group, the step count, the logs so far and the level and selection states."""
+    return {
+        "version": CHECKPOINT_VERSION,
+        "config": to_dict(cfg),
+        "algorithm": cfg.algorithm,
+        "group": ego.state_dict(),
+        "sim_steps": sim_steps,
+        "updates": ego.updates,
+        "egos": logs.tracker.egos,
+        "tracker_sums": logs.tracker.sums.copy(),
+        "tracker_steps": logs.tracker.steps.copy(),
+        "loss_rows": logs.loss.rows,
+        "ego_rows": logs.egos.rows,
+        "levels": None if levels is None else levels.state_dict(),
+        "select": None if selection is None else selection.state_dict(),
+    }
 
 
 def score_levels(levels: LevelReplay, batch) -> None:
@@ -359,7 +391,7 @@ def save_policy(
     )
 
 
-def _show(bar, n_sim: int, egos: int, recent: list[dict]) -> None:
+def show_progress(bar, n_sim: int, egos: int, recent: list[dict]) -> None:
     """Advance the progress bar; success and reward of the last 200 egos."""
     if bar is None:
         return
@@ -372,7 +404,7 @@ def _show(bar, n_sim: int, egos: int, recent: list[dict]) -> None:
         )
 
 
-def _write_timing(out: Path, result: TrainResult, k: int) -> None:
+def write_timing(out: Path, result: TrainResult, k: int) -> None:
     """timing.json: where the run's time went (read by `benchmarks/bench_train.py`)."""
     timing = {
         "wall_s": result.wall_s,
@@ -388,7 +420,7 @@ def _write_timing(out: Path, result: TrainResult, k: int) -> None:
     files.write_text(out / "timing.json", json.dumps(timing, indent=1))
 
 
-def _evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:
+def evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:
     """The greedy policy on the held-out roads (`evaluation.json`), and the run's figures."""
     evaluation = None
     if cfg.eval_episodes > 0:
@@ -405,7 +437,7 @@ def _evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] 
     return evaluation
 
 
-def _finish_resumed(cfg: TrainConfig, out: Path, ckpt: dict[str, Any]) -> TrainResult:
+def finish_resumed(cfg: TrainConfig, out: Path, ckpt: dict[str, Any]) -> TrainResult:
     """`--resume` of a run whose training is complete: nothing changes if its evaluation is
     there; a run killed during the final evaluation is evaluated from its saved policy."""
     from marlmerge.learners.loading import load_policy
@@ -415,7 +447,7 @@ def _finish_resumed(cfg: TrainConfig, out: Path, ckpt: dict[str, Any]) -> TrainR
     if done and cfg.eval_episodes > 0:
         evaluation = json.loads((out / "evaluation.json").read_text())
     elif not done:
-        evaluation = _evaluate_and_plot(cfg, out, load_policy(out / "policy.pt"))
+        evaluation = evaluate_and_plot(cfg, out, load_policy(out / "policy.pt"))
     return TrainResult(
         out, ckpt["sim_steps"], ckpt["updates"], ckpt["egos"], 0.0, 0.0, 0.0, None, evaluation,
         already_finished=done,

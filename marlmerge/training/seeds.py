@@ -1,0 +1,295 @@
+"""Many seeds in one process (`marlmerge train PRESET --seeds 0-7`): `train_seeds()`.
+
+S independent seeds of one recipe share a process, an env and a collector:
+
+- the env holds S x B worlds; world i of seed s is seeded as world i of a run with `seed = s`
+  (`SeedSequence(s, spawn_key=(i,))`), so each seed's B worlds drive exactly the traffic its
+  own run would;
+- each seed keeps everything else of its own: learner, replay, exploration and sampling
+  generators, logs, checkpoint selection; the policy acts on each seed's slice of the batch;
+- the quadratic-Q fast path updates all seeds in one fused call
+  (`marlmerge.learners.quadq_fused`); other learners update seed after seed.
+
+Seeds are independent: seed s of a `--seeds 0-7` run is bit for bit seed s of a `--seeds s` run,
+and that is bit for bit `marlmerge train --set seed=s` (`tests/test_vectorized_seeds.py`).
+Each seed writes `OUT/seed_S` as a single run writes its folder (config, logs, `policy.pt`,
+evaluation, figures, `timing.json` with the times of the whole process); the one checkpoint,
+`OUT/seeds_checkpoint.pt`, holds the shared env and every seed's state, and `--resume` with the
+same seeds continues all of them exactly. Not yet for `[levels]` (one level replay per seed
+would need one scenario source per world slice): such a preset is refused before any work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from marlmerge.config import to_dict
+from marlmerge.config.presets import run_scenario
+from marlmerge.config.training import TrainConfig
+from marlmerge.io import files
+from marlmerge.learners.quadq_fused import FusedQuadQUpdates
+from marlmerge.learners.quadq_learner import QuadQLearner
+from marlmerge.training.checkpoint import open_checkpoint, saved_config
+from marlmerge.training.logs import progress_bar
+from marlmerge.training.loop import (
+    LearningGroup,
+    make_collector,
+    run_loop,
+    save_checkpoint,
+)
+from marlmerge.training.train import (
+    CHECKPOINT_VERSION,
+    RunEnd,
+    RunLogs,
+    TrainResult,
+    ego_rows,
+    finish_resumed,
+    finish_run,
+    make_ego_group,
+    make_selection,
+    run_state,
+    save_policies,
+    show_progress,
+)
+from marlmerge.views.torchrl_env import BatchedMergeEnv
+
+CHECKPOINT_NAME = "seeds_checkpoint.pt"
+
+
+def seed_dir(out: Path, seed: int) -> Path:
+    """The run folder of one seed (as `marlmerge sweep` names it)."""
+    return out / f"seed_{seed}"
+
+
+def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
+    """Refuse what a vectorised run cannot do, before any work."""
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
+    if cfg.levels.replay_fraction > 0.0:
+        raise ValueError(
+            f"--seeds: levels.replay_fraction = {cfg.levels.replay_fraction} is not supported "
+            "with several seeds in one process yet; train each seed with --set seed=S or "
+            "`marlmerge sweep`"
+        )
+
+
+@dataclass
+class SeedRun(RunEnd):
+    """One seed of the process: its config, folder, learning group, logs, selection, step
+    count, and its last 200 finished egos (for the progress bar)."""
+
+    recent: list[dict] = dataclasses.field(default_factory=list)
+
+
+def make_seed_env(cfg: TrainConfig, seeds: list[int]) -> BatchedMergeEnv:
+    """S x B worlds; world i of seed s seeded as world i of a single run with `seed = s`."""
+    b = cfg.num_worlds
+    world_seeds = [np.random.SeedSequence(s, spawn_key=(i,)) for s in seeds for i in range(b)]
+    return BatchedMergeEnv(cfg.scenario, num_worlds=len(seeds) * b, seed=world_seeds)  # type: ignore[arg-type]
+
+
+class SeedsPolicy:
+    """Collector policy of S seeds: each seed's learner acts on its slice of the worlds."""
+
+    def __init__(self, groups: list[LearningGroup], worlds_per_seed: int) -> None:
+        self.groups, self.b = groups, worlds_per_seed
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        obs = td.get("observation")  # [S * B, d]
+        acts = [g.act(obs[j * self.b : (j + 1) * self.b]) for j, g in enumerate(self.groups)]
+        for key in acts[0]:
+            td.set(key, torch.cat([a[key] for a in acts]))
+        return td
+
+
+class SeedGroups:
+    """The ego groups of S seeds as one feed of the loop: each stores its own slice of the
+    batch; the quadratic-Q fast path learns in one fused call, other learners one by one."""
+
+    def __init__(self, groups: list[LearningGroup]) -> None:
+        self.groups = groups
+        learners = [g.learner for g in groups]
+        self.fused: FusedQuadQUpdates | None = None
+        if all(isinstance(le, QuadQLearner) and le.fast is not None for le in learners):
+            fast = [le.fast for le in learners]  # type: ignore[union-attr]
+            self.fused = FusedQuadQUpdates(fast, compile=learners[0].update_path == "compiled")
+
+    @property
+    def compile_time_s(self) -> float | None:
+        if self.fused is not None:
+            return self.fused.compile_time_s
+        return self.groups[0].learner.compile_time_s
+
+    def store(self, rows: list[Tensor], sim_steps: int) -> None:
+        for group, r in zip(self.groups, rows, strict=True):
+            group.store(r, sim_steps // len(self.groups))
+
+    def learn(self) -> None:
+        if self.fused is None:
+            for group in self.groups:
+                group.learn()
+            return
+        owed = [g.take_owed() for g in self.groups]
+        if len(set(owed)) != 1:  # pragma: no cover - the seeds step in lockstep
+            raise RuntimeError(f"seeds out of step: updates owed {owed}")
+        if owed[0] is None:
+            return
+        losses = []
+        for _ in range(owed[0] // self.fused.k):
+            rows = torch.stack(
+                [g.learner.sample_chunk(g.replay, g.batch_size) for g in self.groups]  # type: ignore[attr-defined]
+            )  # [S, k, batch, row]
+            losses.append(self.fused.step(rows))
+        per_seed = torch.cat(losses, 1) if losses else torch.empty(len(self.groups), 0)
+        for group, seed_losses in zip(self.groups, per_seed, strict=True):
+            group.record(seed_losses)
+
+
+def seed_rows(runs: list[SeedRun], worlds_per_seed: int, batch: TensorDictBase) -> list[Tensor]:
+    """Each seed's transitions of a batch [S * B, T]."""
+    b = worlds_per_seed
+    return [ego_rows(r.ego, batch[j * b : (j + 1) * b]) for j, r in enumerate(runs)]
+
+
+def open_run(cfg: TrainConfig, seed: int, out: Path, obs_dim: int, saved: dict | None) -> SeedRun:
+    """One seed's run: a fresh one, or the one `saved` (its part of the checkpoint) left."""
+    cfg_s = dataclasses.replace(cfg, seed=seed)
+    folder = seed_dir(out, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    files.write_text(folder / "config.json", json.dumps(to_dict(cfg_s), indent=1))
+    scen = run_scenario(cfg_s)
+    ego = make_ego_group(cfg_s, scen, obs_dim)
+    selection = make_selection(cfg_s, scen)
+    logs = RunLogs.open(folder, cfg_s, scen.sim.action_repeat * scen.sim.dt_s, saved)
+    run = SeedRun(cfg_s, folder, ego, logs, selection, 0)
+    if saved is not None:
+        ego.load_state_dict(saved["group"])
+        run.sim_steps = saved["sim_steps"]
+        if selection is not None:
+            selection.load_state_dict(saved["select"])
+    ego.explore_step = run.sim_steps
+    ego.on_loss = lambda update, loss: logs.loss.write([update, run.sim_steps, loss])
+    return run
+
+
+def load_seeds_checkpoint(cfg: TrainConfig, seeds: list[int], path: Path) -> dict[str, Any]:
+    """The checkpoint `--resume` continues: same config (the first seed's) and same seeds."""
+    ckpt = open_checkpoint(
+        dataclasses.replace(cfg, seed=seeds[0]), path, CHECKPOINT_VERSION,
+        ("sim_steps", cfg.total_sim_steps),
+    )  # fmt: skip
+    if ckpt["seeds"] != seeds:
+        raise ValueError(
+            f"{path}: the run trains seeds {ckpt['seeds']}, not {seeds}; resume it with "
+            f"--seeds {','.join(map(str, ckpt['seeds']))}"
+        )
+    return ckpt
+
+
+def train_seeds(
+    cfg: TrainConfig,
+    seeds: list[int],
+    out_dir: str | Path,
+    resume: bool = False,
+    progress: bool = True,
+    stop_after_sim_steps: int | None = None,
+    checkpoint_name: str = CHECKPOINT_NAME,
+) -> list[TrainResult]:
+    """Train (or resume) `seeds` of `cfg` in one process into `OUT/seed_S`; returns one result
+    per seed. `stop_after_sim_steps` ends the run abruptly there, as a kill would (tests);
+    `checkpoint_name`: the checkpoint file in `OUT` (a vectorised sweep names one per group)."""
+    check_seeds(cfg, seeds)
+    run_scenario(cfg)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / checkpoint_name
+    if ckpt_path.exists() and not resume:
+        raise ValueError(f"{out} already holds a run: pass --resume to continue it")
+    ckpt = load_seeds_checkpoint(cfg, seeds, ckpt_path) if resume else None
+    torch.set_num_threads(cfg.threads)
+    if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
+        return [
+            _finished_result(seed_dir(out, s), st)
+            for s, st in zip(seeds, ckpt["runs"], strict=True)
+        ]
+
+    env = make_seed_env(cfg, seeds)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    saved = ckpt["runs"] if ckpt is not None else [None] * len(seeds)
+    runs = [open_run(cfg, s, out, obs_dim, st) for s, st in zip(seeds, saved, strict=True)]
+    if ckpt is not None:
+        env.load_sim_state(ckpt["env"])
+    k, b = env.cfg.sim.action_repeat, cfg.num_worlds
+    groups = SeedGroups([r.ego for r in runs])
+    done_steps = runs[0].sim_steps
+    collector = make_collector(
+        env,
+        SeedsPolicy(groups.groups, b),
+        len(seeds) * b * cfg.env_steps_per_batch,
+        len(seeds) * (cfg.total_sim_steps - done_steps),
+        k,
+        resumed_groups=groups.groups if ckpt else [],
+    )
+    bar = progress_bar(cfg.total_sim_steps, done_steps, progress)
+    every = cfg.checkpoint_every_sim_steps
+    next_ckpt = (done_steps // every + 1) * every
+
+    def checkpoint() -> None:
+        states = []
+        for r in runs:
+            r.logs.flush()
+            states.append(run_state(r.cfg, r.ego, r.sim_steps, r.logs, None, r.selection))
+        payload = {**states[0], "seeds": seeds, "runs": states, "env": env.sim_state()}
+        save_checkpoint(ckpt_path, payload)
+
+    def on_batch(batch: TensorDictBase, n_sim: int) -> None:
+        n_seed = n_sim // len(seeds)
+        for j, r in enumerate(runs):
+            r.sim_steps += n_seed
+            r.ego.explore_step = r.sim_steps
+            rows = r.logs.tracker.update(batch[j * b : (j + 1) * b], r.sim_steps, k, r.logs.egos)
+            r.recent = (r.recent + rows)[-200:]
+        recent = [row for r in runs for row in r.recent]
+        show_progress(bar, n_seed, sum(r.logs.tracker.egos for r in runs), recent)
+
+    def after_updates() -> bool:
+        nonlocal next_ckpt
+        steps = runs[0].sim_steps
+        for r in runs:
+            if r.selection is not None and r.selection.due(steps):
+                r.selection.consider(steps, r.ego.learner)
+            if steps >= cfg.total_sim_steps:
+                save_policies(r.out, r.cfg, env.cfg, r.ego.learner, r.selection)
+        if steps >= next_ckpt or steps >= cfg.total_sim_steps:
+            checkpoint()
+            next_ckpt += every
+        if stop_after_sim_steps is not None and steps >= stop_after_sim_steps:
+            for r in runs:
+                r.logs.flush()
+            return True
+        return False
+
+    t_start = time.perf_counter()
+    feeds = [(groups, functools.partial(seed_rows, runs, b))]
+    times = run_loop(collector, feeds, k, on_batch, after_updates)  # type: ignore[arg-type]
+    wall = time.perf_counter() - t_start
+    if bar is not None:
+        bar.close()
+    return [finish_run(r, wall, times, groups.compile_time_s, k) for r in runs]
+
+
+def _finished_result(folder: Path, state: dict[str, Any]) -> TrainResult:
+    """`--resume` of a finished seed: its results as they are (evaluated now if the run was
+    killed during its evaluation)."""
+    return finish_resumed(saved_config(TrainConfig, state["config"]), folder, state)
