@@ -114,10 +114,11 @@ def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
 
     cfg = from_dict(TrainConfig, with_overrides(to_dict(TrainConfig(**SMALL)), algo))
     train_seeds(cfg, [0, 3], tmp_path / "two", progress=False)
-    train_seeds(cfg, [3], tmp_path / "one", progress=False)
     train(dataclasses.replace(cfg, seed=3), tmp_path / "single", progress=False)
-    _same_run(tmp_path / "two" / "seed_3", tmp_path / "one" / "seed_3")
-    _same_run(tmp_path / "one" / "seed_3", tmp_path / "single")
+    _same_run(tmp_path / "two" / "seed_3", tmp_path / "single")
+    if cfg.update_path != "compiled":  # compiled, one seed is one more compilation (~1 min cold)
+        train_seeds(cfg, [3], tmp_path / "one", progress=False)
+        _same_run(tmp_path / "one" / "seed_3", tmp_path / "single")
     two = _read(tmp_path / "two" / "seed_0" / "egos.csv")
     assert two != _read(tmp_path / "two" / "seed_3" / "egos.csv")  # the seeds differ
     if "select.every_sim_steps" in algo:
