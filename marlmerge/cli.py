@@ -125,14 +125,13 @@ def train_cmd(args: argparse.Namespace) -> int:
 
 def _train_seeds_cmd(args: argparse.Namespace, cfg: Any, sets: dict[str, Any], out: Path) -> int:
     """`train --seeds`: the seeds in one process (`marlmerge.training.seeds`)."""
-    from marlmerge.training.seeds import CHECKPOINT_NAME, check_seeds, train_seeds
+    from marlmerge.training.seeds import CHECKPOINT_NAME, train_seeds
     from marlmerge.training.sweep import parse_seeds
     from marlmerge.training.train import TrainConfig
 
     seeds = parse_seeds(args.seeds)
     if "seed" in sets:
         raise ValueError(f"--seeds {args.seeds} and --set seed={sets['seed']}: give one of them")
-    check_seeds(cfg, seeds)
     cfg = _run_config(TrainConfig, out, cfg, sets, args.resume, CHECKPOINT_NAME)
     print(
         f"training {cfg.name!r} on scenario {cfg.scenario!r}: {len(seeds)} seeds "

@@ -565,11 +565,14 @@ def param_layout(obs_dim: int, hidden: int) -> list[tuple[tuple[str, ...], tuple
     ]
 
 
-def _unflatten(flat: Tensor, obs_dim: int, hidden: int) -> list[Tensor]:
+def unflatten(flat: Tensor, obs_dim: int, hidden: int) -> list[Tensor]:
+    """Flat parameters [..., P] -> views w1 [..., 3H, d], b1 [..., 3H], w2 [..., 3, H],
+    b2 [..., 3] (the leading dimensions, e.g. seeds, kept)."""
     out, o = [], 0
+    lead = flat.shape[:-1]
     for _, shape in param_layout(obs_dim, hidden):
         n = math.prod(shape)
-        out.append(flat[o : o + n].view(shape))
+        out.append(flat[..., o : o + n].view(*lead, *shape))
         o += n
     return out
 
@@ -600,13 +603,13 @@ def fast_chunk(
     next_obs = rows[..., d + 3 :]  # [k, B, d]
 
     # Target: max_a' Q_target(s', a') = C_target(s'); only the C head is evaluated.
-    tw1, tb1, tw2, tb2 = _unflatten(target_flat, d, hd)
+    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd)
     c_sl = slice(HEAD_C * hd, (HEAD_C + 1) * hd)
     h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, H]
     v_next = torch.matmul(h_next, tw2[HEAD_C]) + tb2[HEAD_C]  # [k, B]
     y = rew + spec.gamma * not_term * v_next  # [k, B]
 
-    w1, b1, w2, b2 = _unflatten(flat, d, hd)
+    w1, b1, w2, b2 = unflatten(flat, d, hd)
     losses = []
     for i in range(k):
         x = obs[i]  # [B, d]
@@ -767,11 +770,12 @@ class FastQuadQUpdater:
             if tuple(t.shape) != shape:
                 raise ValueError(f"parameter {key} has shape {tuple(t.shape)}, expected {shape}")
         flat = torch.cat([t.detach().reshape(-1) for t in tensors])
-        for t, view in zip(tensors, _unflatten(flat, s.obs_dim, s.hidden), strict=True):
+        for t, view in zip(tensors, unflatten(flat, s.obs_dim, s.hidden), strict=True):
             t.data = view
         return flat
 
-    def _adam_scalars(self) -> Tensor:
+    def adam_scalars(self) -> Tensor:
+        """[k, 2]: (lr / (1 - beta1^t), sqrt(1 - beta2^t)) for the next k updates."""
         b1, b2 = self.betas
         vals = []
         for t in range(self.num_updates + 1, self.num_updates + self.k + 1):
@@ -800,7 +804,7 @@ class FastQuadQUpdater:
             rows = self.replay.sample((self.k, self.batch_size), self.generator)
         if rows.shape[0] != self.k:
             raise ValueError(f"rows must hold k={self.k} minibatches, got {rows.shape[0]}")
-        scalars = self._adam_scalars()
+        scalars = self.adam_scalars()
         if self.compile_time_s is None and self._fn is not self._eager_chunk:
             t0 = time.perf_counter()
             with notice_if_slow():
@@ -812,7 +816,11 @@ class FastQuadQUpdater:
             losses = self._fn(
                 self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
             )
+        self.advance()
+        return losses
+
+    def advance(self) -> None:
+        """Count a chunk of k updates; copy the target when its period is reached."""
         self.num_updates += self.k
         if self.num_updates % self.period == 0:
             self.target_flat.copy_(self.flat)
-        return losses

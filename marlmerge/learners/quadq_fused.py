@@ -6,7 +6,7 @@ independent seeds stepped together cost little more than one. `fused_chunk` is `
 batched matrix products; `FusedQuadQUpdates` steps S `FastQuadQUpdater`s with it.
 
 Bit for bit: each seed's weights after a fused call equal those of its own `fast_chunk` call,
-eager and compiled (`tests/test_vectorized_seeds.py` checks it). Two details buy that:
+eager and compiled (`tests/test_vectorized_seeds.py` checks it). Three details buy that:
 
 - the target's matrix-vector product and the first layer's weight gradient stay one call per
   seed (batched, they round differently);
@@ -37,20 +37,8 @@ from marlmerge.learners.quadq import (
     FastQuadQUpdater,
     FastSpec,
     notice_if_slow,
-    param_layout,
+    unflatten,
 )
-
-
-def unflatten_seeds(flat: Tensor, obs_dim: int, hidden: int) -> list[Tensor]:
-    """[S, P] flat parameters -> w1 [S, 3H, d], b1 [S, 3H], w2 [S, 3, H], b2 [S, 3] (views)."""
-    out, o = [], 0
-    for _, shape in param_layout(obs_dim, hidden):
-        n = 1
-        for x in shape:
-            n *= x
-        out.append(flat[:, o : o + n].view(flat.shape[0], *shape))
-        o += n
-    return out
 
 
 def fused_chunk(
@@ -72,7 +60,7 @@ def fused_chunk(
     not_term = 1.0 - rows[..., d + 2]  # [S, k, B]
     next_obs = rows[..., d + 3 :]  # [S, k, B, d]
 
-    tw1, tb1, tw2, tb2 = unflatten_seeds(target_flat, d, hd)
+    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd)
     c_sl = slice(HEAD_C * hd, (HEAD_C + 1) * hd)
     h_next = torch.bmm(next_obs.reshape(s_, k * bsz, d), tw1[:, c_sl].transpose(1, 2))
     h_next = torch.relu(h_next.view(s_, k, bsz, hd) + tb1[:, None, None, c_sl])  # [S, k, B, H]
@@ -81,7 +69,7 @@ def fused_chunk(
     )
     y = rew + spec.gamma * not_term * v_next  # [S, k, B]
 
-    w1, b1, w2, b2 = unflatten_seeds(flat, d, hd)
+    w1, b1, w2, b2 = unflatten(flat, d, hd)
     losses, grads = [], []
     for i in range(k):
         x, a = obs[:, i], act[:, i]  # [S, B, d], [S, B]
@@ -154,7 +142,7 @@ class FusedQuadQUpdates:
         target = torch.stack([u.target_flat for u in us])
         exp_avg = torch.stack([u.exp_avg for u in us])
         exp_avg_sq = torch.stack([u.exp_avg_sq for u in us])
-        args = (flat, target, exp_avg, exp_avg_sq, us[0]._adam_scalars(), rows)
+        args = (flat, target, exp_avg, exp_avg_sq, us[0].adam_scalars(), rows)
         if self.compiled and self.compile_time_s is None:
             t0 = time.perf_counter()
             with notice_if_slow():
@@ -166,7 +154,5 @@ class FusedQuadQUpdates:
             u.flat.copy_(flat[j])
             u.exp_avg.copy_(exp_avg[j])
             u.exp_avg_sq.copy_(exp_avg_sq[j])
-            u.num_updates += self.k
-            if u.num_updates % u.period == 0:
-                u.target_flat.copy_(u.flat)
+            u.advance()
         return losses
