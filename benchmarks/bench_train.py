@@ -21,11 +21,18 @@ With `--seeds S`, the same run measures, one after the other (`--modes`, default
     python benchmarks/bench_train.py --preset paper --seeds 8
     python benchmarks/bench_train.py --preset paper --seeds 8 --workers 2 --modes one,vec,workers
     python benchmarks/bench_train.py --preset paper --seeds 5 --workers 2 --modes workers,sweep
+
+With `--devices cpu,cuda` the run (one seed, or `--seeds S` in one process) is measured on each
+device in turn (`device` of the recipe), with `speedup` against the first device's training
+loop:
+
+    python benchmarks/bench_train.py --preset paper --devices cpu,cuda [--seeds 8]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -97,6 +104,25 @@ def timed_sweep(preset: str, sets: dict, seeds: list[int], workers: int, vectori
     return {"workers": workers, "with_evaluation_s": wall, "success_rate": success}
 
 
+def on_devices(cfg: TrainConfig, devices: list[str], n_seeds: int | None) -> dict:
+    """The run (one seed, or `n_seeds` in one process) on each device, one after the other;
+    every device is checked before the first run starts."""
+    from marlmerge.learners.common import resolve_device
+
+    cfgs = [dataclasses.replace(cfg, device=d) for d in devices]  # checks the values
+    try:
+        for c in cfgs:
+            resolve_device(c.device)
+    except ValueError as e:
+        raise SystemExit(f"--devices: {e}") from None
+    out: dict = {"machine": machine(), "preset": cfg.name, "update_path": cfg.update_path}
+    seeds = list(range(cfg.seed, cfg.seed + (n_seeds or 1)))
+    for c in cfgs:
+        out[c.device] = single_run(c) if n_seeds is None else seeds_run(c, seeds)
+        out[c.device]["speedup"] = out[cfgs[0].device]["wall_s"] / out[c.device]["wall_s"]
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--preset", default="quick")
@@ -104,9 +130,13 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=None, help="compare S seeds in one run to 1")
     p.add_argument("--workers", type=int, default=2, help="processes of `workers` and `sweep`")
     p.add_argument("--modes", default="one,vec", help="of one, vec, workers, sweep")
+    p.add_argument("--devices", default=None, help="e.g. cpu,cuda: the run on each device")
     args = p.parse_args()
     sets = _parse_sets(args.set)
     cfg = load_train_config(args.preset, **sets)
+    if args.devices is not None:
+        print(json.dumps(on_devices(cfg, args.devices.split(","), args.seeds), indent=2))
+        return
     if args.seeds is None:
         print(json.dumps(single_run(cfg), indent=2))
         return

@@ -10,6 +10,7 @@ from test_train import TINY as TRAIN_TINY
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import SelectConfig, TrainConfig
 from marlmerge.io import files
+from marlmerge.learners.base import Learner
 from marlmerge.training.select import Selection
 from marlmerge.training.train import load_train_config, train
 
@@ -17,7 +18,7 @@ TINY = {**TRAIN_TINY, "eval_episodes": 0}
 SELECT = {"every_sim_steps": 1_024, "episodes": 8, "start_fraction": 0.25}
 
 
-class FakeLearner:
+class FakeLearner(Learner):
     """A learner whose greedy policy is a label; its policy_state is that label."""
 
     def __init__(self) -> None:

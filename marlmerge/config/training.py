@@ -9,6 +9,7 @@ where the config is built: finite, and within the `Bounds` declared beside its f
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -20,6 +21,9 @@ ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
 """The ego learners `marlmerge train` can train (`TrainConfig.algorithm`)."""
 
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
+DEVICE_PATTERN = r"cpu|cuda(:[0-9]+)?|mps"
+"""The values `TrainConfig.device` takes (whether the machine has it is checked when a run
+starts: `marlmerge.learners.common.resolve_device`)."""
 
 MAX_STEPS = 10**12
 """Step counts and periods are at most this."""
@@ -196,6 +200,10 @@ class TrainConfig(RunConfig):
     algorithm: str = "quadq"
     """Learner: "quadq" (the paper's quadratic Q), "dqn" (discrete levels, `[dqn]`) or "td3"
     (`[td3]`). All use the shared settings above."""
+    device: str = "cpu"
+    """Where the learner's networks, optimiser state and replay live: "cpu", "cuda", "cuda:N"
+    or "mps" (the simulator always runs on the CPU). The random draws (exploration noise,
+    minibatch indices) stay on the CPU generators, the same on every device."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -208,6 +216,10 @@ class TrainConfig(RunConfig):
                 (
                     self.algorithm in ALGORITHMS,
                     f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
+                ),
+                (
+                    re.fullmatch(DEVICE_PATTERN, self.device) is not None,
+                    f"device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {self.device!r}",
                 ),
                 (
                     not self.levels.seed_presets or self.levels.replay_fraction > 0.0,

@@ -28,7 +28,10 @@ _NUMPY = "__numpy__"
 
 
 def _plain(obj: Any) -> Any:
-    """`obj` with NumPy arrays as tagged tensors and NumPy scalars as Python numbers."""
+    """`obj` with NumPy arrays as tagged tensors, NumPy scalars as Python numbers and tensors
+    on the CPU (a run on an accelerator writes files any machine reads)."""
+    if isinstance(obj, torch.Tensor) and obj.device.type != "cpu":
+        return obj.cpu()
     if isinstance(obj, np.ndarray):
         return {_NUMPY: torch.from_numpy(np.ascontiguousarray(obj))}
     if isinstance(obj, np.generic):

@@ -7,7 +7,7 @@ per algorithm: it acts with `act`, stores `replay_action`, learns with `learn`, 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
@@ -26,6 +26,9 @@ class Learner:
 
     algorithm: str = ""
     compile_time_s: float | None = None
+    device: torch.device = torch.device("cpu")
+    """Where the networks live; `act` and `greedy` take and return tensors on it (the
+    learning group moves observations there and actions back: `LearningGroup`)."""
     on_policy: bool = False
     """True: `learn` consumes the rollout stored since its last call (PPO), whatever is owed."""
 
@@ -58,3 +61,11 @@ class Learner:
     def policy_state(self) -> dict[str, Any]:
         """What the policy file needs to rebuild the greedy policy (`load_policy`)."""
         raise NotImplementedError
+
+
+def host_greedy(learner: Learner) -> Callable[[Tensor], Tensor]:
+    """`learner.greedy` for observations on the CPU (the simulator's side): moved to the
+    learner's device and the actions back."""
+    if learner.device.type == "cpu":
+        return learner.greedy
+    return lambda obs: learner.greedy(obs.to(learner.device)).to(obs.device)

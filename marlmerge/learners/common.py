@@ -54,31 +54,62 @@ def seeded_init(seed: int) -> Iterator[None]:
 
 
 class GlobalRngStream:
-    """A private random stream for library code that can only draw from the global CPU RNG.
+    """A private random stream for library code that can only draw from the global RNG.
 
-    ``with stream.active():`` swaps the stream's state into the global generator and swaps it
-    back out afterwards, so draws inside the block continue this stream (deterministic,
-    checkpointable via :meth:`get_state`) and the global state outside is left unchanged.
+    ``with stream.active():`` swaps the stream's state into the global generator of ``device``
+    (the CPU's, or the CUDA device's where the library draws on it) and swaps it back out
+    afterwards, so draws inside the block continue this stream (deterministic, checkpointable
+    via :meth:`get_state`) and the global state outside is left unchanged.
     """
 
-    def __init__(self, seed: int) -> None:
-        self.state: Tensor = torch.Generator().manual_seed(seed).get_state()
+    def __init__(self, seed: int, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)
+        self.state: Tensor = torch.Generator(self.device).manual_seed(seed).get_state()
+
+    def _get(self) -> Tensor:
+        if self.device.type == "cuda":
+            return torch.cuda.get_rng_state(self.device)
+        return torch.get_rng_state()
+
+    def _set(self, state: Tensor) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.set_rng_state(state, self.device)
+        else:
+            torch.set_rng_state(state)
 
     @contextlib.contextmanager
     def active(self) -> Iterator[None]:
-        outer = torch.get_rng_state()
-        torch.set_rng_state(self.state)
+        outer = self._get()
+        self._set(self.state)
         try:
             yield
         finally:
-            self.state = torch.get_rng_state()
-            torch.set_rng_state(outer)
+            self.state = self._get()
+            self._set(outer)
 
     def get_state(self) -> Tensor:
         return self.state.clone()
 
     def set_state(self, state: Tensor) -> None:
         self.state = state.clone()
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of a run's `device` setting, refused with an error naming the value when
+    this machine or this torch build does not have it (checked before a run does any work)."""
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(
+                f"device = {name!r}: this torch build finds no CUDA device "
+                "(torch.cuda.is_available() is False); train on device = 'cpu'"
+            )
+        count = torch.cuda.device_count()
+        if device.index is not None and device.index >= count:
+            raise ValueError(f"device = {name!r}: this machine has {count} CUDA device(s)")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device = {name!r}: MPS is not available on this machine")
+    return device
 
 
 # ----------------------------------------------------------------------------------------------
@@ -154,7 +185,7 @@ class BaselineLearner(Learner):
         """`owed` updates, their minibatches drawn in one sampling call."""
         if owed <= 0:
             return torch.empty(0)
-        mbs = replay.sample(owed * batch_size).view(owed, batch_size, -1)
+        mbs = sample_uniform(replay, owed * batch_size).view(owed, batch_size, -1)
         return torch.stack([self.update(mbs[j]) for j in range(owed)])
 
 
@@ -164,7 +195,8 @@ def sample_uniform(replay: Any, n: int) -> Tensor:
     without the buffer's per-call machinery (locks, collation, transform checks), which costs
     more than the draw (about 30 against 80 us for 320 rows; the fast path samples every 10
     updates). Any other buffer is sampled by its own `sample`. `tests/test_vectorized_seeds.py`
-    checks the two against each other."""
+    checks the two against each other. The indices are drawn on the CPU generator whatever the
+    storage's device, so the minibatches are the same rows on every device."""
     storage = getattr(replay, "_storage", None)
     plain = (
         type(getattr(replay, "_sampler", None)) is RandomSampler
@@ -175,5 +207,6 @@ def sample_uniform(replay: Any, n: int) -> Tensor:
     )
     if not plain or len(storage) == 0:  # type: ignore[arg-type]
         return replay.sample(n)
+    rows = storage._storage  # type: ignore[union-attr]
     index = torch.randint(0, len(storage), (n,), generator=storage._rng)  # type: ignore[union-attr]
-    return storage._storage[index]  # type: ignore[union-attr]
+    return rows[index.to(rows.device)]

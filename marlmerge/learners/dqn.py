@@ -99,9 +99,10 @@ class EpsilonGreedy:
     def __call__(self, greedy_index: Tensor, step: int, generator: torch.Generator) -> Tensor:
         """greedy_index int64 [B] -> explored index int64 [B]."""
         shape = greedy_index.shape
-        u = torch.rand(shape, generator=generator)
+        u = torch.rand(shape, generator=generator)  # on the generator's device (the CPU)
         rand_index = torch.randint(0, self.n, shape, generator=generator)
-        return torch.where(u < self.epsilon(step), rand_index, greedy_index)
+        dev = greedy_index.device
+        return torch.where(u.to(dev) < self.epsilon(step), rand_index.to(dev), greedy_index)
 
 
 class DQNLearner(BaselineLearner):
@@ -116,6 +117,8 @@ class DQNLearner(BaselineLearner):
         exploration: epsilon-greedy schedule over simulator steps.
         seed: network initialisation.
         compile: ``torch.compile`` the gradient step (loss, backward, Adam).
+        device: where the networks, the action levels and Adam's state live (initialised on
+            the CPU, then moved).
     """
 
     algorithm = "dqn"
@@ -134,13 +137,16 @@ class DQNLearner(BaselineLearner):
         seed: int = 0,
         compile: bool = False,
         obs_dim: int = OBS_DIM,
+        device: torch.device | str = "cpu",
     ) -> None:
-        self.levels = levels.to(torch.float32)  # [n]
+        self.device = torch.device(device)
+        self.levels = levels.to(self.device, torch.float32)  # [n]
         self.hidden = hidden
         self.layers = layers
         self.qnet = make_dqn_qnet(len(levels), hidden, layers, obs_dim=obs_dim, seed=seed)
         self.q_mlp: nn.Module = self.qnet.module[0].module  # the plain MLP, for fast acting
         self.loss = make_dqn_loss(self.qnet, gamma=gamma, double_dqn=double_dqn)
+        self.loss.to(self.device)  # before Adam sees the parameters; q_mlp stays aliased
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
         self.target_updater = PeriodicHardUpdate(self.loss, period=target_update_period)
         self.exploration = exploration

@@ -28,7 +28,8 @@ def make_learner(cfg: Any, low: float, high: float, obs_dim: int = OBS_DIM) -> B
     ``cfg.update_path == "compiled"`` wraps the gradient steps in ``torch.compile`` (any other
     path runs them eagerly: "fast" and "torchrl" only mean something for quadq). Exploration
     decays over ``cfg.sigma_decay_fraction * cfg.total_sim_steps`` simulator steps (epsilon for
-    DQN, the Gaussian std for TD3). Networks are seeded from ``cfg.seed``.
+    DQN, the Gaussian std for TD3). Networks are seeded from ``cfg.seed`` and live on
+    ``cfg.device``.
     """
     decay = max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1)
     compile = cfg.update_path == "compiled"
@@ -47,6 +48,7 @@ def make_learner(cfg: Any, low: float, high: float, obs_dim: int = OBS_DIM) -> B
             seed=cfg.seed,
             compile=compile,
             obs_dim=obs_dim,
+            device=cfg.device,
         )
     if cfg.algorithm == "td3":
         td3 = cfg.td3
@@ -65,6 +67,7 @@ def make_learner(cfg: Any, low: float, high: float, obs_dim: int = OBS_DIM) -> B
             seed=cfg.seed,
             compile=compile,
             obs_dim=obs_dim,
+            device=cfg.device,
         )
     raise ValueError(f"make_learner: unknown algorithm {cfg.algorithm!r} (one of dqn, td3)")
 

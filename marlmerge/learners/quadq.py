@@ -385,15 +385,16 @@ def noisy_greedy_action(
 ) -> Tensor:
     """``clip(greedy + sigma * N(0, 1), low, high)``, noise drawn from ``generator``.
 
-    ``greedy_action`` [..., 1] m/s^2; the generator must live on the action's device.
+    ``greedy_action`` [..., 1] m/s^2. The noise is drawn on the generator's device and moved
+    to the action's, so a CPU generator draws the same noise for a policy on any device.
     """
     noise = torch.randn(
         greedy_action.shape,
         generator=generator,
-        device=greedy_action.device,
+        device=generator.device,
         dtype=greedy_action.dtype,
     )
-    return (greedy_action + sigma * noise).clamp(low, high)
+    return (greedy_action + sigma * noise.to(greedy_action.device)).clamp(low, high)
 
 
 @dataclass

@@ -37,6 +37,8 @@ class QuadQLearner(Learner):
         updates_per_call: updates per fast-path call (must divide the target period).
         seed: initialises the networks; sample_generator: draws the minibatches.
         init_weights: start from these network weights (a trained policy's `net`) instead.
+        device: where the networks and the optimiser state live (initialised on the CPU,
+            then moved, so every device starts from the same weights).
     """
 
     algorithm = "quadq"
@@ -57,12 +59,15 @@ class QuadQLearner(Learner):
         seed: int,
         sample_generator: torch.Generator,
         init_weights: Mapping[str, Tensor] | None = None,
+        device: torch.device | str = "cpu",
     ) -> None:
         init = torch.Generator().manual_seed(seed)
         self.obs_dim, self.hidden = obs_dim, hidden
+        self.device = torch.device(device)
         self.net = QuadraticQNet(obs_dim, hidden, action_low=low, action_high=high, generator=init)
         if init_weights is not None:  # before the loss module copies them into its target
             self.net.load_state_dict(init_weights)
+        self.net.to(self.device)  # before the loss copies it and the fast path aliases it
         self.loss_module = QuadraticQLoss(self.net, gamma=gamma)
         self.exploration = exploration
         self.update_path = update_path

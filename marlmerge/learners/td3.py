@@ -135,7 +135,9 @@ class TD3Learner(BaselineLearner):
         policy_delay: critic steps per actor step.
         policy_noise, noise_clip: target policy smoothing, m/s^2.
         exploration: Gaussian noise schedule on the actor's action.
-        seed: network initialisation; ``seed + 3`` seeds the target-smoothing noise stream.
+        seed: network initialisation; ``seed + 3`` seeds the target-smoothing noise stream
+            (drawn by torchrl on the networks' device: on CUDA from that device's generator).
+        device: where the networks and Adam's state live (initialised on the CPU, then moved).
         compile: ``torch.compile`` the critic and the actor steps (loss, backward, Adam).
     """
 
@@ -158,7 +160,9 @@ class TD3Learner(BaselineLearner):
         seed: int = 0,
         compile: bool = False,
         obs_dim: int = OBS_DIM,
+        device: torch.device | str = "cpu",
     ) -> None:
+        self.device = torch.device(device)
         self.low, self.high = float(low), float(high)
         self.hidden = hidden
         self.layers = layers
@@ -175,6 +179,7 @@ class TD3Learner(BaselineLearner):
             noise_clip=noise_clip,
             seed=seed + 2,
         )
+        self.loss.to(self.device)  # before Adam sees the parameters; actor_net stays aliased
         self.actor_optimizer = torch.optim.Adam(
             list(self.loss.actor_network_params.values(True, True)), lr=lr
         )
@@ -183,7 +188,7 @@ class TD3Learner(BaselineLearner):
         )
         self.target_updater = SoftUpdate(self.loss, tau=tau)
         self.policy_delay = int(policy_delay)
-        self.smoothing = GlobalRngStream(seed + 3)
+        self.smoothing = GlobalRngStream(seed + 3, self.device)
         self.exploration = exploration
         self.num_updates = 0
         self.last_actor_loss = float("nan")

@@ -3,6 +3,7 @@ against the requested one."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -12,6 +13,10 @@ from marlmerge.config.training import upgrade_flat_keys
 from marlmerge.io import files
 
 C = TypeVar("C")
+
+PLACE_KEYS = ("device",)
+"""Keys that say where a run computes, not what it computes: a resumed run may change them
+(`--resume --set device=cpu` continues a run trained on an accelerator on a machine without)."""
 
 
 def saved_config(cls: type[C], data: dict[str, Any]) -> C:
@@ -24,8 +29,10 @@ def resume_config(
 ) -> C:
     """The config of the run in `out` (checkpoint `name`) that `--resume` continues. A key given
     with `--set` must agree with it (a resumed run continues that run: nothing is resumable
-    with other values)."""
+    with other values), except the `PLACE_KEYS`, which the request sets."""
     saved = saved_config(cls, files.load(out / name, "checkpoint")["config"])
+    place = {k: getattr(requested, k) for k in PLACE_KEYS if k in set_keys}
+    saved = dataclasses.replace(saved, **place)  # type: ignore[type-var]
     for key in set_keys:
         if get_dotted(saved, key) != get_dotted(requested, key):
             raise ValueError(
@@ -44,7 +51,7 @@ def open_checkpoint(cfg: Any, path: Path, version: int, done: tuple[str, int]) -
         raise ValueError(f"--resume: no checkpoint at {path}")
     ckpt = files.load(path, "checkpoint")
     saved = to_dict(saved_config(type(cfg), ckpt["config"]))
-    differ = [k for k, v in to_dict(cfg).items() if saved.get(k) != v]
+    differ = [k for k, v in to_dict(cfg).items() if saved.get(k) != v and k not in PLACE_KEYS]
     if differ:
         raise ValueError(
             f"{path}: the run was made with other values of {', '.join(differ)}; resume it with "

@@ -37,9 +37,21 @@ RowsFn = Callable[[TensorDictBase], Tensor]
 """Collector batch [B, T] -> packed transitions [n, obs | action | reward | terminated | next]."""
 
 
-def make_replay(capacity: int, sample_gen: torch.Generator) -> ReplayBuffer:
-    """torchrl buffer of packed transitions [obs | action | reward | terminated | next_obs]."""
-    return ReplayBuffer(storage=LazyTensorStorage(capacity), generator=sample_gen)
+def make_replay(
+    capacity: int, sample_gen: torch.Generator, device: torch.device | str = "cpu"
+) -> ReplayBuffer:
+    """torchrl buffer of packed transitions [obs | action | reward | terminated | next_obs],
+    stored on `device`; minibatch indices come from `sample_gen` (a CPU generator)."""
+    return ReplayBuffer(storage=LazyTensorStorage(capacity, device=device), generator=sample_gen)
+
+
+def replay_to(replay: ReplayBuffer, device: torch.device) -> None:
+    """Put a loaded replay's storage on `device` (torchrl loads a checkpoint's storage where the
+    checkpoint held it: on the CPU)."""
+    storage = replay._storage
+    rows = getattr(storage, "_storage", None)
+    if isinstance(rows, Tensor) and rows.device != device:
+        storage._storage = rows.to(device)
 
 
 @dataclass
@@ -48,7 +60,9 @@ class LearningGroup:
     of the updates it owes (`updates_per_sim_step` per simulator step of its experience).
 
     `exploring` and `explore_step` (the step of the exploration schedule) are set by the run;
-    `on_loss(update, loss)` sees every `loss_log_every`-th update's loss.
+    `on_loss(update, loss)` sees every `loss_log_every`-th update's loss. The group is the
+    boundary between the simulator's CPU tensors and the learner's device: observations go
+    there, actions come back, transitions are stored there.
     """
 
     name: str
@@ -68,13 +82,19 @@ class LearningGroup:
 
     @torch.no_grad()
     def act(self, obs: Tensor) -> dict[str, Tensor]:
-        """The learner's action for `obs` [..., d] (with exploration noise while exploring)."""
-        return self.learner.act(obs, self.explore_step, self.noise_gen if self.exploring else None)
+        """The learner's action for `obs` [..., d] (with exploration noise while exploring),
+        on the device of `obs`."""
+        gen = self.noise_gen if self.exploring else None
+        dev = self.learner.device
+        if obs.device == dev:
+            return self.learner.act(obs, self.explore_step, gen)
+        acted = self.learner.act(obs.to(dev), self.explore_step, gen)
+        return {key: value.to(obs.device) for key, value in acted.items()}
 
     def store(self, rows: Tensor, sim_steps: int) -> None:
         """Add transitions [n, row] that stand for `sim_steps` simulator steps of experience."""
         if rows.shape[0]:
-            self.replay.extend(rows)
+            self.replay.extend(rows.to(self.learner.device))
         self.experience_sim_steps += sim_steps
 
     def learn(self) -> None:
@@ -119,6 +139,7 @@ class LearningGroup:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.learner.load_state_dict(state["learner"])
         self.replay.load_state_dict(state["replay"])
+        replay_to(self.replay, self.learner.device)
         self.noise_gen.set_state(state["noise_gen"])
         self.sample_gen.set_state(state["sample_gen"])
         self.experience_sim_steps = state["experience_sim_steps"]

@@ -38,6 +38,7 @@ from marlmerge.config import to_dict
 from marlmerge.config.presets import run_scenario
 from marlmerge.config.training import TrainConfig
 from marlmerge.io import files
+from marlmerge.learners.common import resolve_device
 from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.training.checkpoint import open_checkpoint, saved_config
@@ -73,7 +74,9 @@ def seed_dir(out: Path, seed: int) -> Path:
 
 
 def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
-    """Refuse what a vectorised run cannot do, before any work."""
+    """Refuse what a vectorised run cannot do (and a device this machine lacks), before any
+    work."""
+    resolve_device(cfg.device)
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
     if cfg.levels.replay_fraction > 0.0:

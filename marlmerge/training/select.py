@@ -22,7 +22,7 @@ from torch import Tensor
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import SelectConfig
-from marlmerge.learners.base import Learner
+from marlmerge.learners.base import Learner, host_greedy
 
 Evaluate = Callable[[Callable[[Tensor], Tensor], ScenarioConfig, int, int, int], dict[str, Any]]
 """`marlmerge.evaluation.rollout.evaluate_policy`: (greedy, scenario, episodes, first seed,
@@ -63,7 +63,7 @@ class Selection:
     def consider(self, sim_steps: int, learner: Learner) -> None:
         """Drive the validation roads greedily; keep the policy if it fails no more often
         than the best so far."""
-        result = self.evaluate(learner.greedy)
+        result = self.evaluate(host_greedy(learner))
         failures = round(self.cfg.episodes * (1.0 - result["success_rate"]))
         self.history.append(
             {

@@ -197,7 +197,11 @@ def sweep(
         SeedTask(kind, str(preset), tuple(sorted(overrides.items())), s, str(out / f"seed_{s}"))
         for s in seeds
     ]
-    _load(tasks[0])  # a bad preset or override fails here, before any work starts
+    first = _load(tasks[0])  # a bad preset or override fails here, before any work starts
+    if kind == "train" and backend != "ray":  # Ray's workers may have devices this host lacks
+        from marlmerge.learners.common import resolve_device
+
+        resolve_device(first.device)
     out.mkdir(parents=True, exist_ok=True)
     bar = None
     if progress:

@@ -33,7 +33,8 @@ from marlmerge.config.training import (
 )
 from marlmerge.io import files
 from marlmerge.io.policy_file import write_policy
-from marlmerge.learners.base import Learner
+from marlmerge.learners.base import Learner, host_greedy
+from marlmerge.learners.common import resolve_device
 from marlmerge.learners.loading import make_learner as make_peer_learner
 from marlmerge.learners.quadq import GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
@@ -112,17 +113,18 @@ def make_learner(
         updates_per_call=cfg.updates_per_call,
         seed=cfg.seed,
         sample_generator=sample_gen,
+        device=cfg.device,
     )
 
 
 def make_ego_group(cfg: TrainConfig, scen: ScenarioConfig, obs_dim: int) -> LearningGroup:
-    """The ego's learning group: learner, replay, exploration noise (`seed + 1`) and minibatch
-    sampling (`seed + 2`)."""
+    """The ego's learning group: learner and replay on `cfg.device`, exploration noise
+    (`seed + 1`) and minibatch sampling (`seed + 2`) from CPU generators."""
     sample_gen = torch.Generator().manual_seed(cfg.seed + 2)
     return LearningGroup(
         "ego",
         make_learner(cfg, scen, sample_gen, obs_dim),
-        make_replay(cfg.replay_capacity, sample_gen),
+        make_replay(cfg.replay_capacity, sample_gen, cfg.device),
         noise_gen=torch.Generator().manual_seed(cfg.seed + 1),
         sample_gen=sample_gen,
         updates_per_sim_step=cfg.updates_per_sim_step,
@@ -197,7 +199,8 @@ def train(
     """Run (or resume) training; writes logs, checkpoints, the policy, the evaluation and the
     plots. `stop_after_sim_steps` ends the run abruptly at that step without checkpointing, as a
     kill would (used by the resume tests)."""
-    run_scenario(cfg)  # an unknown scenario fails before anything is written
+    run_scenario(cfg)  # an unknown scenario or device fails before anything is written
+    resolve_device(cfg.device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -295,7 +298,7 @@ def finish_run(
     one with `[select]`) and draw the figures; write `timing.json`."""
     run.logs.close()
     finished = run.sim_steps >= run.cfg.total_sim_steps
-    greedy = run.ego.learner.greedy
+    greedy = host_greedy(run.ego.learner)
     if finished and run.selection is not None:
         from marlmerge.learners.loading import load_policy
 

@@ -1,0 +1,97 @@
+"""The device option (`device = "cuda"`): values checked, a missing device refused before any work,
+the acting networks aliased through a move, files written on the CPU, a run resumed on another
+device; on a machine with CUDA, whole runs there."""
+
+import dataclasses
+import json
+
+import pytest
+import torch
+from test_train import TINY
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.io import files
+from marlmerge.learners.loading import load_policy
+from marlmerge.training.seeds import train_seeds
+from marlmerge.training.train import TrainConfig, load_train_config, make_learner, train
+
+
+@pytest.mark.parametrize("value", ["gpu", "cuda:x", "CPU", ""])
+def test_device_values_are_checked(value):
+    with pytest.raises(ValueError, match=f"device must be .* got {value!r}"):
+        TrainConfig(device=value)
+    with pytest.raises(ValueError, match="device"):
+        load_train_config("paper", device=value)
+
+
+def test_a_device_the_machine_lacks_is_refused_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = TrainConfig(**TINY, device="cuda")
+    with pytest.raises(ValueError, match=r"device = 'cuda': .*is_available\(\) is False"):
+        train(cfg, tmp_path / "run", progress=False)
+    with pytest.raises(ValueError, match="device = 'cuda'"):
+        train_seeds(cfg, [0, 1], tmp_path / "seeds", progress=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match=r"device = 'cuda:3': this machine has 1 CUDA device"):
+        train(dataclasses.replace(cfg, device="cuda:3"), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists() and not (tmp_path / "seeds").exists()
+
+
+def _acting_and_loss_params(learner):
+    """The acting network's parameters and the loss module's online parameters."""
+    if learner.algorithm == "quadq":
+        return learner.net, learner.loss_module.value_network_params
+    if learner.algorithm == "dqn":
+        return learner.q_mlp, learner.loss.value_network_params
+    return learner.actor_net, learner.loss.actor_network_params
+
+
+@pytest.mark.parametrize("algorithm", ["quadq", "dqn", "td3"])
+def test_acting_network_stays_the_losss_parameters_through_a_move(algorithm):
+    """A learner is built on the CPU and its loss moved (`loss.to(device)`) before anything is
+    built on the parameters; the network it acts with must still be the loss's parameters. A
+    dtype change goes through the same `Module._apply` as a device move: checked with it."""
+    cfg = TrainConfig(**{**TINY, "update_path": "torchrl"}, algorithm=algorithm)
+    learner = make_learner(cfg, ScenarioConfig(), torch.Generator().manual_seed(0), 7)
+    net, params = _acting_and_loss_params(learner)
+    loss = learner.loss_module if algorithm == "quadq" else learner.loss
+    loss.to(torch.float64)
+    ptrs = {t.data_ptr() for t in params.values(True, True)}
+    assert all(p.dtype == torch.float64 and p.data_ptr() in ptrs for p in net.parameters())
+
+
+def test_a_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_path, capsys, monkeypatch):
+    """Checkpoints and policies hold CPU tensors whatever the device, and `device` is the one
+    key a resumed run may change: a run recorded as trained on CUDA (its saved config says so)
+    continues on this machine with `--set device=cpu`, bit for bit the uninterrupted run."""
+    from marlmerge.cli import main
+
+    cfg = TrainConfig(**TINY)
+    train(cfg, tmp_path / "whole", progress=False)
+    train(cfg, tmp_path / "cut", progress=False, stop_after_sim_steps=3_000)
+    ckpt_path = tmp_path / "cut" / "checkpoint.pt"
+    ckpt = files.load(ckpt_path, "checkpoint")
+    ckpt["config"]["device"] = "cuda"
+    files.save(ckpt, ckpt_path)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    args = ["train", "--out", str(tmp_path / "cut"), "--resume", "--no-progress"]
+    assert main(args) == 2  # without --set: the run's own device, which this machine lacks
+    assert "device = 'cuda'" in capsys.readouterr().err
+    assert main([*args, "--set", "device=cpu"]) == 0
+    for name in ("loss.csv", "egos.csv", "evaluation.json"):
+        assert (tmp_path / "cut" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+ON_CUDA = [("quadq", "compiled"), ("dqn", "fast"), ("td3", "fast")]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("algorithm,path", ON_CUDA)
+def test_whole_run_on_cuda(tmp_path, algorithm, path):
+    cfg = TrainConfig(**{**TINY, "update_path": path}, algorithm=algorithm, device="cuda")
+    result = train(cfg, tmp_path, progress=False)
+    assert result.sim_steps >= cfg.total_sim_steps
+    policy = load_policy(tmp_path / "policy.pt")  # written on the CPU: loads anywhere
+    assert policy(torch.zeros(3, 7)).device.type == "cpu"
+    assert json.loads((tmp_path / "evaluation.json").read_text())["episodes"] == 8
