@@ -179,3 +179,27 @@ def test_the_total_reward_is_bit_for_bit_the_sum_of_the_papers_terms():
     with_zero_terms = np.concatenate([terms, np.zeros((1000, 1))], axis=1)
     assert np.array_equal(total_reward(with_zero_terms), terms.sum(axis=1))
     assert total_reward(with_zero_terms).tobytes() == terms.sum(axis=1).tobytes()
+
+
+def test_the_total_reward_adds_its_terms_left_to_right_from_plus_zero():
+    """`total_reward` is one accumulate, not a loop of 8 array additions: the same bits as the
+    loop, signed zeros included (a total is never -0.0), for a batch and for one world."""
+    import numpy as np
+
+    from marlmerge.sim.reward import total_reward
+
+    def loop(terms):
+        total = 0.0 + terms[..., 0]
+        for i in range(1, terms.shape[-1]):
+            total = total + terms[..., i]
+        return total
+
+    rng = np.random.default_rng(1)
+    terms = rng.normal(size=(500, 8)) * rng.choice([1e-9, 1.0, 1e7], size=(500, 8))
+    zeros = rng.random((500, 8)) < 0.4
+    terms[zeros] = rng.choice([0.0, -0.0], size=int(zeros.sum()))
+    terms[:5] = -0.0  # all terms negative zeros
+    assert total_reward(terms).tobytes() == loop(terms).tobytes()
+    assert not np.signbit(total_reward(terms[:5])).any()
+    for row in terms[:50]:
+        assert np.asarray(total_reward(row)).tobytes() == np.asarray(loop(row)).tobytes()

@@ -239,3 +239,23 @@ def test_a_world_scenario_may_differ_only_in_what_sample_draws():
         TrafficCore(base, 2, seed=0, scenarios=[base])
     with pytest.raises(ValueError, match=r"\[sample\]"):
         TrafficCore(_cfg(), 1, seed=0, scenarios=[base])
+
+
+@pytest.mark.parametrize(
+    "mix", [(0.6, 0.3, 0.1), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.1, 0.7, 0.2)]
+)
+def test_drawn_profiles_are_what_generator_choice_draws(mix):
+    """`Streams._profiles` replaces `Generator.choice(3, p=...)` (its checks cost a third of a
+    chunk of arrivals): the same profiles, and the generator left in the same state."""
+    from marlmerge.sim.streams import Streams
+
+    keys = ("driver.mix_neutral", "driver.mix_cooperative", "driver.mix_adversarial")
+    cfg = ScenarioConfig().replace(**dict(zip(keys, mix, strict=True)))
+    streams = Streams(cfg, 1)
+    p = np.asarray(cfg.driver.mix) / sum(cfg.driver.mix)
+    for seed in range(50):
+        ours, numpy = np.random.default_rng(seed), np.random.default_rng(seed)
+        for n in (32, 5):
+            expected = numpy.choice(3, size=n, p=p).astype(np.float64)
+            assert np.array_equal(streams._profiles(cfg, ours, n), expected)
+        assert ours.bit_generator.state == numpy.bit_generator.state

@@ -762,18 +762,30 @@ class FastQuadQUpdater:
             kw.update(compile_kwargs or {})
             self._fn = torch.compile(self._eager_chunk, **kw)
 
-    def _alias(self, params: TensorDictParams) -> Tensor:
-        """Copy ``params`` into one flat buffer and re-point each tensor to a view of it."""
+    def _alias(self, params: TensorDictParams, flat: Tensor | None = None) -> Tensor:
+        """Copy ``params`` into one flat buffer [P] (``flat``, e.g. a row of S seeds' stacked
+        buffer, or a new one) and re-point each tensor to a view of it."""
         s = self.spec
         layout = param_layout(s.obs_dim, s.hidden)
         tensors = [params.get(key) for key, _ in layout]
         for t, (key, shape) in zip(tensors, layout, strict=True):
             if tuple(t.shape) != shape:
                 raise ValueError(f"parameter {key} has shape {tuple(t.shape)}, expected {shape}")
-        flat = torch.cat([t.detach().reshape(-1) for t in tensors])
+        values = torch.cat([t.detach().reshape(-1) for t in tensors])
+        flat = values if flat is None else flat.copy_(values)
         for t, view in zip(tensors, unflatten(flat, s.obs_dim, s.hidden), strict=True):
             t.data = view
         return flat
+
+    def share(self, flat: Tensor, target_flat: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor) -> None:
+        """Keep this updater's weights, target and Adam moments in the given [P] tensors (rows
+        of S seeds' stacked buffers: ``FusedQuadQUpdates`` then updates them in place, with
+        nothing to gather or scatter per call); the loss module's weights become views of
+        them. The values are this updater's own."""
+        self.flat = self._alias(self.loss.value_network_params, flat)
+        self.target_flat = self._alias(self.loss.target_value_network_params, target_flat)
+        self.exp_avg = exp_avg.copy_(self.exp_avg)
+        self.exp_avg_sq = exp_avg_sq.copy_(self.exp_avg_sq)
 
     def adam_scalars(self) -> Tensor:
         """[k, 2]: (lr / (1 - beta1^t), sqrt(1 - beta2^t)) for the next k updates."""

@@ -116,8 +116,10 @@ def _seed_loss(
 
 class FusedQuadQUpdates:
     """Steps S `FastQuadQUpdater`s (one per seed, equal settings, at the same update count)
-    with one `fused_chunk` call: their weights and Adam moments are stacked into [S, P]
-    buffers for the call and written back after it; each updater keeps its own bookkeeping."""
+    with one `fused_chunk` call. Their weights, targets and Adam moments live in [S, P]
+    buffers here, each updater (and its loss module's weights) holding views of its row
+    (`FastQuadQUpdater.share`), so a call updates them in place with nothing to gather or
+    scatter; each updater keeps its own bookkeeping (update count, target copies)."""
 
     def __init__(self, updaters: Sequence[FastQuadQUpdater], compile: bool) -> None:
         specs = {u.spec for u in updaters}
@@ -125,6 +127,14 @@ class FusedQuadQUpdates:
             raise ValueError("fused updates need seeds with the same learner settings")
         self.updaters = list(updaters)
         self.k = self.updaters[0].k
+        us = self.updaters
+        # [S, P] each: the seeds' state lives here, each updater holding views of its row
+        self.flat = torch.stack([u.flat for u in us])
+        self.target_flat = torch.stack([u.target_flat for u in us])
+        self.exp_avg = torch.stack([u.exp_avg for u in us])
+        self.exp_avg_sq = torch.stack([u.exp_avg_sq for u in us])
+        for j, u in enumerate(us):
+            u.share(self.flat[j], self.target_flat[j], self.exp_avg[j], self.exp_avg_sq[j])
         fn: Callable[..., tuple[Tensor, Tensor]] = functools.partial(fused_chunk, specs.pop())
         self.compiled = compile
         # the C++ wrapper: the per-seed products make the Python one cost 0.5 ms a call
@@ -138,11 +148,10 @@ class FusedQuadQUpdates:
         us = self.updaters
         if len({u.num_updates for u in us}) != 1:
             raise ValueError("fused updates need the seeds at the same update count")
-        flat = torch.stack([u.flat for u in us])
-        target = torch.stack([u.target_flat for u in us])
-        exp_avg = torch.stack([u.exp_avg for u in us])
-        exp_avg_sq = torch.stack([u.exp_avg_sq for u in us])
-        args = (flat, target, exp_avg, exp_avg_sq, us[0].adam_scalars(), rows)
+        if any(u.flat.data_ptr() != self.flat[j].data_ptr() for j, u in enumerate(us)):
+            raise RuntimeError("a fused seed's updater was rebuilt: its state is no longer shared")
+        state = (self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq)
+        args = (*state, us[0].adam_scalars(), rows)
         if self.compiled and self.compile_time_s is None:
             t0 = time.perf_counter()
             with notice_if_slow():
@@ -150,9 +159,6 @@ class FusedQuadQUpdates:
             self.compile_time_s = time.perf_counter() - t0
         else:
             losses, _ = self._fn(*args)
-        for j, u in enumerate(us):
-            u.flat.copy_(flat[j])
-            u.exp_avg.copy_(exp_avg[j])
-            u.exp_avg_sq.copy_(exp_avg_sq[j])
+        for u in us:
             u.advance()
         return losses

@@ -157,4 +157,9 @@ class QuadQLearner(Learner):
             self.target_updater.load_state_dict(state["target_updater"])
 
     def policy_state(self) -> dict[str, Any]:
-        return {"net": self.net.state_dict(), "hidden": self.hidden}
+        # copies: the weights are views of the fast path's flat buffer (of S seeds' stacked
+        # buffer in a vectorised run), which a policy file must not carry
+        return {
+            "net": {k: v.clone() for k, v in self.net.state_dict().items()},
+            "hidden": self.hidden,
+        }

@@ -7,6 +7,7 @@ from a user: a NaN, an infinity, None, a string or a wrongly shaped array is an 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -25,11 +26,11 @@ def as_actions(
     if raw.dtype.kind not in "iuf":  # None, strings, booleans, objects
         raise ValueError(f"{who} must be a number or an array of shape {shape}, got {value!r}")
     a = raw.astype(np.float64)
-    if a.size != int(np.prod(shape)) or (exact and a.shape not in (shape, ())):
+    if a.size != math.prod(shape) or (exact and a.shape not in (shape, ())):
         raise ValueError(f"{who} must have shape {shape}, got shape {a.shape} ({value!r})")
     a = a.reshape(shape[0])
-    bad = ~np.isfinite(a)
-    if bad.any():
+    if not (math.isfinite(a[0]) if a.size == 1 else np.isfinite(a).all()):
+        bad = ~np.isfinite(a)
         where = f" of world {int(np.argmax(bad))}" if a.size > 1 else ""
         raise ValueError(f"{who}{where} must be finite, got {a[bad][0]}")
     return a

@@ -220,11 +220,14 @@ class TrafficCore:
 
     # ------------------------------------------------------------------ drawn arrivals
     def _push(self, b: int, stream: int, rows: np.ndarray) -> None:
-        q_len = self.sched.shape[2]
-        head, count = self.wi[b, L.WI_HEAD_RIGHT + stream], self.wi[b, L.WI_COUNT_RIGHT + stream]
-        idx = (head + count + np.arange(rows.shape[0])) % q_len
-        self.sched[b, stream, idx] = rows
-        self.wi[b, L.WI_COUNT_RIGHT + stream] = count + rows.shape[0]
+        q_len, n = self.sched.shape[2], rows.shape[0]
+        count = int(self.wi[b, L.WI_COUNT_RIGHT + stream])
+        start = (int(self.wi[b, L.WI_HEAD_RIGHT + stream]) + count) % q_len
+        if start + n <= q_len:  # one slice (most pushes), else around the ring's end
+            self.sched[b, stream, start : start + n] = rows
+        else:
+            self.sched[b, stream, (start + np.arange(n)) % q_len] = rows
+        self.wi[b, L.WI_COUNT_RIGHT + stream] = count + n
 
     def _last_time(self, b: int, stream: int) -> float:
         """Drawn time of the last arrival of `stream` in world `b` (-inf when none is left)."""

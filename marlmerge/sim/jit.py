@@ -6,8 +6,13 @@
 - `_nrt=False`: no reference counting. The kernels allocate nothing and create no views, they
   only index the core's arrays, so the runtime's atomic reference counts on every array passed
   to a function (about 10 ns each) would be pure overhead in the per-vehicle loops.
-- `inline=True` inlines a small helper into its callers (Numba IR); `parallel=True` lets `prange`
-  run worlds on all cores (that loop alone uses the runtime).
+- `inline=True` inlines a helper into its callers (Numba IR); `parallel=True` lets `prange`
+  run worlds on all cores (that loop alone uses the runtime). Every kernel takes the state
+  tuple `S` (six arrays, about 70 machine words once unpacked), so a call that is not inlined
+  costs more than a small kernel's work: the functions a simulator step calls (in `step`, the
+  lane lists, the per-step terms) are inlined into `substep` and `rollout_world`, which halves
+  the fixed cost of a world's step (`benchmarks/bench_core_against.py`). `substep` itself
+  stays a call: inlining it too doubles the cold compile for no measurable gain.
 
 With `NUMBA_DISABLE_JIT=1` every kernel runs as plain Python (slowly), for debugging.
 

@@ -129,7 +129,7 @@ OVERFLOW = 1 << 32
 # ----------------------------------------------------------------------------------------------
 
 
-@kernel
+@kernel(inline=True)
 def _trace_row(S: tuple, b: int, trace: np.ndarray, i: int) -> None:
     """The ego after a step, with the metrics' conventions (no gap vehicle: inf gap, nan speed)."""
     vf, vi, wf, wi, lanes, sched = S
@@ -145,7 +145,7 @@ def _trace_row(S: tuple, b: int, trace: np.ndarray, i: int) -> None:
     trace[b, i, TR_HIT] = 1.0 if vi[b, VI_FLAGS, EGO] & EV_HIT else 0.0
 
 
-@kernel
+@kernel(inline=True)
 def _roster_step(
     S: tuple, b: int, p: np.ndarray, roster: np.ndarray, hw_terms: np.ndarray, live: bool
 ) -> None:

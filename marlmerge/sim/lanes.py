@@ -43,7 +43,7 @@ def neighbours_at(S: tuple, b: int, lane: int, x: float) -> tuple[int, int]:
     return ahead, behind
 
 
-@kernel
+@kernel(inline=True)
 def insert(S: tuple, b: int, lane: int, slot: int) -> None:
     """Put `slot` into `lane` at its position (behind vehicles at the same position)."""
     vf, vi, wf, wi, lanes, sched = S
@@ -55,7 +55,7 @@ def insert(S: tuple, b: int, lane: int, slot: int) -> None:
     wi[b, WI_N_RIGHT + lane] = n + 1
 
 
-@kernel
+@kernel(inline=True)
 def remove(S: tuple, b: int, lane: int, slot: int) -> bool:
     """Take `slot` out of `lane`; False if it was not there."""
     vf, vi, wf, wi, lanes, sched = S
@@ -81,7 +81,7 @@ def replace(S: tuple, b: int, lane: int, old: int, new: int) -> None:
             return
 
 
-@kernel
+@kernel(inline=True)
 def resort(S: tuple, b: int, lane: int) -> None:
     """Restore downstream-first order after a step (insertion sort: one pass when in order)."""
     vf, vi, wf, wi, lanes, sched = S

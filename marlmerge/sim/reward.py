@@ -117,7 +117,7 @@ def follower_closeness(
     )
 
 
-@kernel
+@kernel(inline=True)
 def add_ego_terms(
     params,
     out,
@@ -150,10 +150,8 @@ def add_ego_terms(
 def total_reward(terms: np.ndarray) -> np.ndarray:
     """The reward: the named terms [..., T] summed left to right in `EGO_TERMS` order, so that a
     term left at 0 changes no bit of the total (a plain `sum` may pair the terms differently)."""
-    total = 0.0 + terms[..., 0]  # from +0.0, as numpy's sum of a few terms starts
-    for i in range(1, terms.shape[-1]):
-        total = total + terms[..., i]
-    return total
+    # accumulate adds left to right (a `sum` reduces in blocks); + 0.0 as a sum from +0.0 ends
+    return np.add.accumulate(terms, axis=-1)[..., -1] + 0.0
 
 
 @kernel

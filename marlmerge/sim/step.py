@@ -140,7 +140,7 @@ from marlmerge.sim.safety import filtered_accel
 INF = math.inf
 
 
-@kernel
+@kernel(inline=True)
 def neighbours(S: tuple, b: int, p: np.ndarray) -> None:
     """Leader, follower, bumper gap and leader speed of every vehicle from the lane lists (gap
     inf and the own speed when there is no leader). The ego on the ramp has no neighbours."""
@@ -248,7 +248,7 @@ def _move(S: tuple, b: int, s: int, acc: float, dt: float) -> None:
     vf[b, VF_AGE, s] += dt
 
 
-@kernel
+@kernel(inline=True)
 def mark_controlled(
     S: tuple, b: int, p: np.ndarray, roster: np.ndarray, roster_cmd: np.ndarray
 ) -> None:
@@ -265,7 +265,7 @@ def mark_controlled(
             vi[b, VI_FLAGS, s] |= EV_CONTROLLED
 
 
-@kernel
+@kernel(inline=True)
 def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
     """Accelerations on the pre-step state and the ballistic update, in one sweep per lane from
     downstream (each vehicle's leader is still known as it was before the step). Mainline drivers
@@ -352,7 +352,7 @@ def _idm_of(S: tuple, b: int, s: int, gap: float, v_lead: float, dp: tuple) -> f
     )
 
 
-@kernel
+@kernel(inline=True)
 def _mobil_wants_change(
     S: tuple, b: int, s: int, p: np.ndarray, dp: tuple, pending: bool, x_e: float, v_e: float
 ) -> bool:
@@ -395,7 +395,7 @@ def _mobil_wants_change(
     return safe and incentive + bias > p[P_LC_THRESHOLD]
 
 
-@kernel
+@kernel(inline=True)
 def lane_change_decisions(S: tuple, b: int, p: np.ndarray) -> int:
     """Flag (`EV_CHANGE`) the scripted mainline vehicles that change lanes after this step,
     decided on the pre-step state. Returns how many."""
@@ -417,7 +417,7 @@ def lane_change_decisions(S: tuple, b: int, p: np.ndarray) -> int:
     return n
 
 
-@kernel
+@kernel(inline=True)
 def apply_lane_changes(S: tuple, b: int) -> None:
     """Move the flagged vehicles to the other lane, at their new positions."""
     vf, vi, wf, wi, lanes, sched = S
@@ -435,7 +435,7 @@ def apply_lane_changes(S: tuple, b: int) -> None:
                 i += 1
 
 
-@kernel
+@kernel(inline=True)
 def deactivate(S: tuple, b: int, s: int) -> None:
     """Take slot `s` off the road (out of its lane list, inactive)."""
     vf, vi, wf, wi, lanes, sched = S
@@ -447,7 +447,7 @@ def deactivate(S: tuple, b: int, s: int) -> None:
     vi[b, VI_ACTIVE, s] = 0
 
 
-@kernel
+@kernel(inline=True)
 def exits(S: tuple, b: int, p: np.ndarray) -> None:
     """Vehicles past the downstream end leave (the ego never does: its episode ends first)."""
     vf, vi, wf, wi, lanes, sched = S
@@ -465,7 +465,7 @@ def exits(S: tuple, b: int, p: np.ndarray) -> None:
             wi[b, WI_EXITED] += 1
 
 
-@kernel
+@kernel(inline=True)
 def free_slot(S: tuple, b: int) -> int:
     """The lowest free mainline slot, -1 if none."""
     vf, vi, wf, wi, lanes, sched = S
@@ -475,7 +475,7 @@ def free_slot(S: tuple, b: int) -> int:
     return -1
 
 
-@kernel
+@kernel(inline=True)
 def spawn(
     S: tuple,
     b: int,
@@ -510,7 +510,7 @@ def spawn(
     ll.insert(S, b, lane, s)
 
 
-@kernel
+@kernel(inline=True)
 def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
     """The first vehicle of each lane's entrance queue (drawn arrivals whose time has come) enters
     at its drawn speed once the gap to the last vehicle of its lane is at least its IDM desired
@@ -567,7 +567,7 @@ def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
         wi[b, WI_QUEUE_MAX] = max(wi[b, WI_QUEUE_MAX], queue)
 
 
-@kernel
+@kernel(inline=True)
 def ego_join(S: tuple, b: int, p: np.ndarray) -> None:
     """The ego becomes a right-lane vehicle once its body overlaps the lane."""
     vf, vi, wf, wi, lanes, sched = S
@@ -582,7 +582,7 @@ def ego_join(S: tuple, b: int, p: np.ndarray) -> None:
         wf[b, WF_EGO_IN_LANE] = 0.0
 
 
-@kernel
+@kernel(inline=True)
 def collisions(S: tuple, b: int, p: np.ndarray) -> tuple[bool, bool]:
     """Overlapping consecutive vehicles of a lane collide (gaps from `neighbours`). Returns
     whether the ego had a new collision and whether wrecks were towed away; the ego's partner
@@ -625,7 +625,7 @@ def collisions(S: tuple, b: int, p: np.ndarray) -> tuple[bool, bool]:
     return ego_hit, towed > 0
 
 
-@kernel
+@kernel(inline=True)
 def ego_episode(S: tuple, b: int, p: np.ndarray, running: bool, ego_hit: bool) -> None:
     """The running ego's clocks and the outcome it reaches in this step (`WI_STEP_OUTCOME`)."""
     vf, vi, wf, wi, lanes, sched = S
@@ -649,7 +649,7 @@ def ego_episode(S: tuple, b: int, p: np.ndarray, running: bool, ego_hit: bool) -
     wi[b, WI_STEP_OUTCOME] = outcome
 
 
-@kernel
+@kernel(inline=True)
 def ego_gaps(S: tuple, b: int, p: np.ndarray) -> None:
     """The ego's gap-front and gap-back vehicles: its right-lane neighbours (projected onto the
     lane while it is on the ramp), within the sensing range. A missing one is a virtual vehicle

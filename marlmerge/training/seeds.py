@@ -38,7 +38,7 @@ from marlmerge.config import to_dict
 from marlmerge.config.presets import run_scenario
 from marlmerge.config.training import TrainConfig
 from marlmerge.io import files
-from marlmerge.learners.common import resolve_device
+from marlmerge.learners.common import resolve_device, sample_uniform
 from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.training.checkpoint import open_checkpoint, saved_config
@@ -134,6 +134,19 @@ class SeedGroups:
             return self.fused.compile_time_s
         return self.groups[0].learner.compile_time_s
 
+    def _sample(self) -> Tensor:
+        """Every seed's minibatches of one fused call, each drawn from its own replay with its
+        own generator (as `QuadQLearner.sample_chunk`), into one tensor [S, k, batch, row]."""
+        k, bsz = self.fused.k, self.groups[0].batch_size  # type: ignore[union-attr]
+        rows = None
+        for j, g in enumerate(self.groups):
+            drawn = sample_uniform(g.replay, k * bsz, None if rows is None else rows[j])
+            if rows is None:  # the first seed's rows give the row size and the device
+                rows = drawn.new_empty((len(self.groups), k * bsz, drawn.shape[-1]))
+                rows[0] = drawn
+        assert rows is not None
+        return rows.view(len(self.groups), k, bsz, -1)
+
     def store(self, rows: list[Tensor], sim_steps: int) -> None:
         for group, r in zip(self.groups, rows, strict=True):
             group.store(r, sim_steps // len(self.groups))
@@ -150,10 +163,7 @@ class SeedGroups:
             return
         losses = []
         for _ in range(owed[0] // self.fused.k):
-            rows = torch.stack(
-                [g.learner.sample_chunk(g.replay, g.batch_size) for g in self.groups]  # type: ignore[attr-defined]
-            )  # [S, k, batch, row]
-            losses.append(self.fused.step(rows))
+            losses.append(self.fused.step(self._sample()))
         per_seed = torch.cat(losses, 1) if losses else torch.empty(len(self.groups), 0)
         for group, seed_losses in zip(self.groups, per_seed, strict=True):
             group.record(seed_losses)
