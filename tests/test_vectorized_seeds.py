@@ -172,12 +172,13 @@ def test_bad_seed_specs_are_named(tmp_path, capsys, spec, message):
     assert not (tmp_path / "r").exists()
 
 
-def test_seeds_refuse_a_seed_set_and_levels_before_any_work(tmp_path, capsys):
+def test_seeds_refuse_a_seed_set_and_levels_without_sample_before_any_work(tmp_path, capsys):
     out = tmp_path / "r"
     assert main(["train", "--seeds", "0-1", "--set", "seed=3", "--out", str(out)]) == 2
     assert "--set seed=3" in capsys.readouterr().err
-    assert main(["train", "hardened", "--seeds", "0-1", "--out", str(out)]) == 2
-    assert "levels.replay_fraction = 0.5" in capsys.readouterr().err
+    args = ["train", "--seeds", "0-1", "--set", "levels.replay_fraction=0.5", "--out", str(out)]
+    assert main(args) == 2
+    assert "needs a scenario with [sample] ranges" in capsys.readouterr().err
     with pytest.raises(ValueError, match="only train"):
         sweep("cotrain", [0, 1], out, vectorized=True, progress=False)
     assert not out.exists()
@@ -203,3 +204,25 @@ def test_a_vectorised_sweep_splits_the_seeds_over_workers_and_matches_single_run
     again = sweep("paper", [0, 1, 2], tmp_path / "s", sets, "process", workers=2, vectorized=True)
     # finished groups are reused as they are
     assert json.dumps(again["per_seed"]) == json.dumps(summary["per_seed"])
+
+
+@pytest.mark.slow
+def test_level_replay_seeds_are_their_single_runs(tmp_path):
+    """`[levels]` with `--seeds`: each seed replays its own levels, and is its single run."""
+    from test_levels import TINY as LEVELS
+
+    cfg = load_train_config("quick", **{**LEVELS, "total_sim_steps": 6_144})
+    train_seeds(cfg, [0, 1], tmp_path / "vec", progress=False)
+    train(dataclasses.replace(cfg, seed=1), tmp_path / "one", progress=False)
+    _same_run(tmp_path / "vec" / "seed_1", tmp_path / "one")
+    runs = files.load(tmp_path / "vec" / CHECKPOINT_NAME)["runs"]
+    single = files.load(tmp_path / "one" / "checkpoint.pt")["levels"]
+    assert runs[1]["levels"] == single  # the same buffer, scores and draws
+    assert runs[0]["levels"] != single
+    for run in runs:  # levels were scored and replayed
+        assert run["levels"]["draws"] > len(run["levels"]["levels"])
+    cut = tmp_path / "cut"  # killed after a checkpoint, resumed: the level buffers come back
+    train_seeds(cfg, [0, 1], cut, progress=False, stop_after_sim_steps=5_000)
+    train_seeds(cfg, [0, 1], cut, resume=True, progress=False)
+    for seed in (0, 1):
+        _same_run(cut / f"seed_{seed}", tmp_path / "vec" / f"seed_{seed}")

@@ -158,3 +158,16 @@ class LevelReplay:
             int(i): Level((dict(values), pure), episodes, failures, last)
             for i, values, pure, episodes, failures, last in state["levels"]
         }
+
+
+class SeedLevels:
+    """The scenario source of S seeds' worlds in one env (`marlmerge train --seeds`): world
+    `j * B + i` draws from seed j's own `LevelReplay` as world i of that seed's single run."""
+
+    def __init__(self, replays: list[LevelReplay], worlds_per_seed: int) -> None:
+        self.replays, self.b = replays, worlds_per_seed
+
+    def draw(
+        self, base: ScenarioConfig, world: int, g: np.random.Generator
+    ) -> tuple[ScenarioConfig, int]:
+        return self.replays[world // self.b].draw(base, world % self.b, g)

@@ -42,6 +42,7 @@ from marlmerge.learners.common import resolve_device, sample_uniform
 from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.training.checkpoint import open_checkpoint, saved_config
+from marlmerge.training.levels import LevelReplay, SeedLevels
 from marlmerge.training.logs import progress_bar
 from marlmerge.training.loop import (
     LearningGroup,
@@ -58,9 +59,11 @@ from marlmerge.training.train import (
     finish_resumed,
     finish_run,
     make_ego_group,
+    make_levels,
     make_selection,
     run_state,
     save_policies,
+    score_levels,
     show_progress,
 )
 from marlmerge.views.torchrl_env import BatchedMergeEnv
@@ -79,27 +82,33 @@ def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
     resolve_device(cfg.device)
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
-    if cfg.levels.replay_fraction > 0.0:
-        raise ValueError(
-            f"--seeds: levels.replay_fraction = {cfg.levels.replay_fraction} is not supported "
-            "with several seeds in one process yet; train each seed with --set seed=S or "
-            "`marlmerge sweep`"
-        )
+    make_levels(cfg)  # [levels] on a scenario without [sample] fails here
 
 
 @dataclass
 class SeedRun(RunEnd):
     """One seed of the process: its config, folder, learning group, logs, selection, step
-    count, and its last 200 finished egos (for the progress bar)."""
+    count, its last 200 finished egos (for the progress bar) and its level replay
+    (`[levels]`)."""
 
     recent: list[dict] = dataclasses.field(default_factory=list)
+    levels: LevelReplay | None = None
 
 
-def make_seed_env(cfg: TrainConfig, seeds: list[int]) -> BatchedMergeEnv:
-    """S x B worlds; world i of seed s seeded as world i of a single run with `seed = s`."""
+def make_seed_env(
+    cfg: TrainConfig, seeds: list[int], levels: list[LevelReplay] | None = None
+) -> BatchedMergeEnv:
+    """S x B worlds; world i of seed s seeded as world i of a single run with `seed = s`;
+    with `[levels]`, world i of seed s draws its roads from seed s's replay (`levels`)."""
     b = cfg.num_worlds
     world_seeds = [np.random.SeedSequence(s, spawn_key=(i,)) for s in seeds for i in range(b)]
-    return BatchedMergeEnv(cfg.scenario, num_worlds=len(seeds) * b, seed=world_seeds)  # type: ignore[arg-type]
+    source = None if levels is None else SeedLevels(levels, b)
+    return BatchedMergeEnv(
+        cfg.scenario,
+        num_worlds=len(seeds) * b,
+        seed=world_seeds,
+        scenario_source=source,  # type: ignore[arg-type]
+    )
 
 
 class SeedsPolicy:
@@ -175,8 +184,16 @@ def seed_rows(runs: list[SeedRun], worlds_per_seed: int, batch: TensorDictBase) 
     return [ego_rows(r.ego, batch[j * b : (j + 1) * b]) for j, r in enumerate(runs)]
 
 
-def open_run(cfg: TrainConfig, seed: int, out: Path, obs_dim: int, saved: dict | None) -> SeedRun:
-    """One seed's run: a fresh one, or the one `saved` (its part of the checkpoint) left."""
+def open_run(
+    cfg: TrainConfig,
+    seed: int,
+    out: Path,
+    obs_dim: int,
+    saved: dict | None,
+    levels: LevelReplay | None = None,
+) -> SeedRun:
+    """One seed's run (with its level replay `levels`): a fresh one, or the one `saved` (its
+    part of the checkpoint) left."""
     cfg_s = dataclasses.replace(cfg, seed=seed)
     folder = seed_dir(out, seed)
     folder.mkdir(parents=True, exist_ok=True)
@@ -185,10 +202,12 @@ def open_run(cfg: TrainConfig, seed: int, out: Path, obs_dim: int, saved: dict |
     ego = make_ego_group(cfg_s, scen, obs_dim)
     selection = make_selection(cfg_s, scen)
     logs = RunLogs.open(folder, cfg_s, scen.sim.action_repeat * scen.sim.dt_s, saved)
-    run = SeedRun(cfg_s, folder, ego, logs, selection, 0)
+    run = SeedRun(cfg_s, folder, ego, logs, selection, 0, levels=levels)
     if saved is not None:
         ego.load_state_dict(saved["group"])
         run.sim_steps = saved["sim_steps"]
+        if levels is not None:
+            levels.load_state_dict(saved["levels"])
         if selection is not None:
             selection.load_state_dict(saved["select"])
     ego.explore_step = run.sim_steps
@@ -237,10 +256,15 @@ def train_seeds(
             for s, st in zip(seeds, ckpt["runs"], strict=True)
         ]
 
-    env = make_seed_env(cfg, seeds)
+    replays = [make_levels(dataclasses.replace(cfg, seed=s)) for s in seeds]
+    on = [r for r in replays if r is not None]
+    env = make_seed_env(cfg, seeds, on or None)
     obs_dim = env.observation_spec["observation"].shape[-1]
     saved = ckpt["runs"] if ckpt is not None else [None] * len(seeds)
-    runs = [open_run(cfg, s, out, obs_dim, st) for s, st in zip(seeds, saved, strict=True)]
+    runs = [
+        open_run(cfg, s, out, obs_dim, st, lv)
+        for s, st, lv in zip(seeds, saved, replays, strict=True)
+    ]
     if ckpt is not None:
         env.load_sim_state(ckpt["env"])
     k, b = env.cfg.sim.action_repeat, cfg.num_worlds
@@ -262,7 +286,7 @@ def train_seeds(
         states = []
         for r in runs:
             r.logs.flush()
-            states.append(run_state(r.cfg, r.ego, r.sim_steps, r.logs, None, r.selection))
+            states.append(run_state(r.cfg, r.ego, r.sim_steps, r.logs, r.levels, r.selection))
         payload = {**states[0], "seeds": seeds, "runs": states, "env": env.sim_state()}
         save_checkpoint(ckpt_path, payload)
 
@@ -271,8 +295,11 @@ def train_seeds(
         for j, r in enumerate(runs):
             r.sim_steps += n_seed
             r.ego.explore_step = r.sim_steps
-            rows = r.logs.tracker.update(batch[j * b : (j + 1) * b], r.sim_steps, k, r.logs.egos)
+            part = batch[j * b : (j + 1) * b]
+            rows = r.logs.tracker.update(part, r.sim_steps, k, r.logs.egos)
             r.recent = (r.recent + rows)[-200:]
+            if r.levels is not None:
+                score_levels(r.levels, part)
         recent = [row for r in runs for row in r.recent]
         show_progress(bar, n_seed, sum(r.logs.tracker.egos for r in runs), recent)
 

@@ -77,18 +77,23 @@ reward terms, `jerk` added)."""
 def make_env(cfg: TrainConfig) -> BatchedMergeEnv:
     """B worlds of the run's scenario, one ego each, seeded from `cfg.seed`; with `[levels]`
     each new road's traffic comes from the run's `LevelReplay` (`env.core.scenario_source`)."""
-    levels = None
-    if cfg.levels.replay_fraction > 0.0:
-        if not run_scenario(cfg).sample.active:
-            raise ValueError(
-                f"levels.replay_fraction = {cfg.levels.replay_fraction} needs a scenario with "
-                f"[sample] ranges; {cfg.scenario!r} has none"
-            )
-        levels = LevelReplay(cfg.levels)
-        levels.seed_levels(run_scenario(cfg), cfg.seed)
     return BatchedMergeEnv(
-        cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed, scenario_source=levels
+        cfg.scenario, num_worlds=cfg.num_worlds, seed=cfg.seed, scenario_source=make_levels(cfg)
     )
+
+
+def make_levels(cfg: TrainConfig) -> LevelReplay | None:
+    """The run's level replay (`[levels]`), its buffer seeded from `cfg.seed`; None when off."""
+    if cfg.levels.replay_fraction == 0.0:
+        return None
+    if not run_scenario(cfg).sample.active:
+        raise ValueError(
+            f"levels.replay_fraction = {cfg.levels.replay_fraction} needs a scenario with "
+            f"[sample] ranges; {cfg.scenario!r} has none"
+        )
+    levels = LevelReplay(cfg.levels)
+    levels.seed_levels(run_scenario(cfg), cfg.seed)
+    return levels
 
 
 def make_learner(
