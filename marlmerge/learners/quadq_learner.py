@@ -125,7 +125,7 @@ class QuadQLearner(Learner):
                 losses.append(self.fast.step(self.sample_chunk(replay, batch_size)))
             return torch.cat(losses) if losses else torch.empty(0)
         for _ in range(owed):
-            out = self.loss_module(unpack_rows(replay.sample(batch_size), self.obs_dim))
+            out = self.loss_module(unpack_rows(sample_uniform(replay, batch_size), self.obs_dim))
             self.optimizer.zero_grad()
             out["loss_value"].backward()
             self.optimizer.step()

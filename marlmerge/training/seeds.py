@@ -15,8 +15,8 @@ and that is bit for bit `marlmerge train --set seed=s` (`tests/test_vectorized_s
 Each seed writes `OUT/seed_S` as a single run writes its folder (config, logs, `policy.pt`,
 evaluation, figures, `timing.json` with the times of the whole process); the one checkpoint,
 `OUT/seeds_checkpoint.pt`, holds the shared env and every seed's state, and `--resume` with the
-same seeds continues all of them exactly. Not yet for `[levels]` (one level replay per seed
-would need one scenario source per world slice): such a preset is refused before any work.
+same seeds continues all of them exactly. With `[levels]` each seed keeps its own level replay,
+and its worlds draw their roads from it (`marlmerge.training.levels.SeedLevels`).
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ from marlmerge.training.train import (
     RunEnd,
     RunLogs,
     TrainResult,
+    check_levels,
     ego_rows,
     finish_resumed,
     finish_run,
@@ -82,7 +83,7 @@ def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
     resolve_device(cfg.device)
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
-    make_levels(cfg)  # [levels] on a scenario without [sample] fails here
+    check_levels(cfg)
 
 
 @dataclass
@@ -241,8 +242,7 @@ def train_seeds(
     """Train (or resume) `seeds` of `cfg` in one process into `OUT/seed_S`; returns one result
     per seed. `stop_after_sim_steps` ends the run abruptly there, as a kill would (tests);
     `checkpoint_name`: the checkpoint file in `OUT` (a vectorised sweep names one per group)."""
-    check_seeds(cfg, seeds)
-    run_scenario(cfg)
+    check_seeds(cfg, seeds)  # the scenario loads, too
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / checkpoint_name
@@ -257,8 +257,7 @@ def train_seeds(
         ]
 
     replays = [make_levels(dataclasses.replace(cfg, seed=s)) for s in seeds]
-    on = [r for r in replays if r is not None]
-    env = make_seed_env(cfg, seeds, on or None)
+    env = make_seed_env(cfg, seeds, replays if replays[0] is not None else None)  # type: ignore[arg-type]
     obs_dim = env.observation_spec["observation"].shape[-1]
     saved = ckpt["runs"] if ckpt is not None else [None] * len(seeds)
     runs = [

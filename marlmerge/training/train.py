@@ -86,14 +86,20 @@ def make_levels(cfg: TrainConfig) -> LevelReplay | None:
     """The run's level replay (`[levels]`), its buffer seeded from `cfg.seed`; None when off."""
     if cfg.levels.replay_fraction == 0.0:
         return None
-    if not run_scenario(cfg).sample.active:
+    levels = LevelReplay(cfg.levels)
+    levels.seed_levels(check_levels(cfg), cfg.seed)
+    return levels
+
+
+def check_levels(cfg: TrainConfig) -> ScenarioConfig:
+    """The run's scenario, refused if `[levels]` is on and it has no `[sample]` ranges."""
+    scen = run_scenario(cfg)
+    if cfg.levels.replay_fraction > 0.0 and not scen.sample.active:
         raise ValueError(
             f"levels.replay_fraction = {cfg.levels.replay_fraction} needs a scenario with "
             f"[sample] ranges; {cfg.scenario!r} has none"
         )
-    levels = LevelReplay(cfg.levels)
-    levels.seed_levels(run_scenario(cfg), cfg.seed)
-    return levels
+    return scen
 
 
 def make_learner(
