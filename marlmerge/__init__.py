@@ -21,7 +21,7 @@ import warnings
 from types import ModuleType
 from typing import Any
 
-__version__ = "0.4.0"
+__version__ = "0.5.0"
 
 _LAZY = {
     "ScenarioConfig": "marlmerge.config",
@@ -37,6 +37,8 @@ _LAZY = {
     "RampMergeParallelEnv": "marlmerge.views.pettingzoo_env",
     "env": "marlmerge.views.pettingzoo_env",
     "parallel_env": "marlmerge.views.pettingzoo_env",
+    "ramp_flow_parallel_env": "marlmerge.views.ramp_flow_env",
+    "ramp_flow_env": "marlmerge.views.ramp_flow_env",
     "raw_env": "marlmerge.views.pettingzoo_env",
 }
 """Public name -> the module it is loaded from on first use."""

@@ -1,5 +1,5 @@
-"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | stress | plot | simulate |
-render | validate`.
+"""Command line: `marlmerge train | cotrain | sweep | evaluate | grid | stress | estimate |
+rampflow | plot | simulate | render | validate`.
 
 `marlmerge --help` lists them."""
 
@@ -195,6 +195,16 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
 
 
 def _print_evaluation(ev: dict) -> None:
+    if "merged_vph" in ev:  # a ramp-flow run: the merge as a whole
+        lo, hi = ev["merged_vph_ci95"]
+        print(
+            f"greedy evaluation under ramp flow ({ev['ramp_demand_vph']:g} veh/h on the ramp): "
+            f"merged {ev['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
+            f"{ev['ramp_delay_s']:.1f} s, {ev['ramp_collisions']} collisions "
+            f"({ev['ramp_collisions_per_1000']:.2f} per 1,000 merged)"
+        )
+        return
+
     def rate(key: str) -> str:
         lo, hi = ev[f"{key}_ci95"]
         return f"{key} {ev[f'{key}_rate']:.1%} [{lo:.1%}, {hi:.1%}]"
@@ -337,6 +347,59 @@ def estimate_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def rampflow_cmd(args: argparse.Namespace) -> int:
+    """Ramp flow: every ramp vehicle driven by one policy, the merge measured as a whole, one
+    row per ramp demand; the last line printed is the JSON of all rows."""
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.ramp_flow import run_ramp_flow
+
+    if args.scenario is not None:
+        base = resolve_config(args.scenario)
+    else:  # the policy's own scenario (a learned one's training scenario; rules: the default)
+        from marlmerge.evaluation.registry import policy_for_evaluation
+
+        base = policy_for_evaluation(args.policy, None)[1]
+    if args.ramp_flow is None and not base.ramp.flowing:
+        raise ValueError(
+            f"--ramp-flow: scenario {base.name!r} has no ramp flow (ramp.flow_vph = 0); "
+            "give the demand(s), e.g. --ramp-flow 600"
+        )
+    demands = [base.ramp.flow_vph] if args.ramp_flow is None else _demands(args.ramp_flow)
+    if args.mainline_flow is not None:
+        base = base.replace(**{"traffic.flow_vph_per_lane": args.mainline_flow})
+    rows = []
+    for vph in demands:
+        cfg = base.replace(**{"ramp.flow_vph": vph})
+        r = run_ramp_flow(cfg, args.policy, args.hours, args.worlds, args.seed, args.skip)
+        lo, hi = r.merged_vph_ci95
+        print(
+            f"ramp {vph:g} veh/h, mainline {r.mainline_demand_vph_per_lane:g} veh/h/lane: merged "
+            f"{r.merged_vph:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay {r.ramp_delay_s:.1f} s, "
+            f"longest queue {r.ramp_max_queue}, {r.ramp_collisions} collisions, mainline "
+            f"{r.mainline_speed_upstream_mps:.1f} -> {r.mainline_speed_merge_mps:.1f} m/s"
+        )
+        rows.append(r.to_dict())
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.json").write_text(json.dumps(rows, indent=1))
+    print(json.dumps(rows))
+    return 0
+
+
+def _demands(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(
+            f"--ramp-flow: expected numbers separated by commas, got {text!r}"
+        ) from None
+    bad = [v for v in values if not 0 < v <= 3600]
+    if not values or bad:
+        raise ValueError(f"--ramp-flow: each demand must be in (0, 3600] veh/h, got {text!r}")
+    return values
+
+
 def plot_cmd(args: argparse.Namespace) -> int:
     """Regenerate the paper's figures from a run's logs."""
     from marlmerge.training.plots import plot_run
@@ -395,6 +458,8 @@ def validate_cmd(args: argparse.Namespace) -> int:
         print("SUMO is not installed: comparing against the committed SUMO reference outputs")
     if args.update_reference and not sumo.available():
         raise ValueError('--update-reference: SUMO is not installed (pip install -e ".[sumo]")')
+    if args.merge:
+        return _validate_merge(args, use_sumo is not False and sumo.available())
     result = validate(
         resolve_config(args.scenario), args.out, use_sumo, update_reference=args.update_reference
     )
@@ -404,6 +469,26 @@ def validate_cmd(args: argparse.Namespace) -> int:
         ratios = ", ".join(f"{k} {v['ratio']:.3f}" for k, v in row.items() if "ok" in v)
         print(f"flow {flow} veh/h/lane, marlmerge / SUMO: {ratios}")
     print(f"all targets met: {result['all_targets_met']}; wrote {args.out}/README.md")
+    return 0 if result["all_targets_met"] else 1
+
+
+def _validate_merge(args: argparse.Namespace, use_sumo: bool) -> int:
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.validation.merge import validate_merge
+
+    out = args.out if args.out != "docs/validation" else "docs/validation/merge"
+    result = validate_merge(
+        resolve_config(args.scenario), out, use_sumo, update_reference=args.update_reference
+    )
+    from marlmerge.validation.merge import VARIANTS
+
+    for name in VARIANTS:
+        r = result[name]
+        print(
+            f"{name}: merged flow within 10 % of SUMO in {r['merged_within_10pct']} cells, "
+            f"ramp delay in {r['delay_within_10pct']}"
+        )
+    print(f"wrote {out}/README.md")
     return 0 if result["all_targets_met"] else 1
 
 
@@ -575,6 +660,26 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--out", default="runs/estimate", help="batches and report.json (resumable)")
     es.set_defaults(func=estimate_cmd)
 
+    rf = sub.add_parser("rampflow", help="ramp flow: many merging vehicles, the merge measured")
+    rf.add_argument("policy", help="drives every ramp vehicle: hold, idm, gap, or a run folder")
+    rf.add_argument(
+        "--scenario", default=None, help="the traffic (default: the policy's own; rules: default)"
+    )
+    rf.add_argument(
+        "--ramp-flow",
+        default=None,
+        help="ramp demand(s), veh/h, e.g. 200,600,1000 (a curve); default: the scenario's",
+    )
+    rf.add_argument(
+        "--mainline-flow", type=float, default=None, help="veh/h/lane (default: scenario's)"
+    )
+    rf.add_argument("--hours", type=float, default=1.0, help="measured simulated time per world")
+    rf.add_argument("--skip", type=float, default=300.0, help="settling time before counting, s")
+    rf.add_argument("--worlds", type=_at_least(1), default=4)
+    rf.add_argument("--seed", type=_at_least(0), default=0)
+    rf.add_argument("--out", default=None, help="also write report.json here")
+    rf.set_defaults(func=rampflow_cmd)
+
     pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
     pl.add_argument("run", help="run folder")
     pl.set_defaults(func=plot_cmd)
@@ -634,6 +739,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--update-reference",
         action="store_true",
         help="with SUMO: also replace the shipped SUMO reference (marlmerge/validation/reference)",
+    )
+    v.add_argument(
+        "--merge",
+        action="store_true",
+        help="merge capacity and ramp delay under ramp flow (report: docs/validation/merge)",
     )
     v.set_defaults(func=validate_cmd)
     return p

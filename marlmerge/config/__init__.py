@@ -31,6 +31,7 @@ from marlmerge.config.scenario import (
     DriverConfig,
     EgoConfig,
     InteractionConfig,
+    RampConfig,
     RewardConfig,
     RoadConfig,
     SampleConfig,
@@ -41,6 +42,7 @@ from marlmerge.config.scenario import (
     VehicleConfig,
     latency_steps,
     load_scenario,
+    require_ego,
     validate,
 )
 
@@ -58,6 +60,7 @@ __all__ = [
     "RewardConfig",
     "RoadConfig",
     "SampleConfig",
+    "RampConfig",
     "ScenarioConfig",
     "SensingConfig",
     "SimConfig",
@@ -71,6 +74,7 @@ __all__ = [
     "get_dotted",
     "latency_steps",
     "load_scenario",
+    "require_ego",
     "num",
     "positive",
     "read_toml",

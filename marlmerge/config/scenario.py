@@ -29,6 +29,8 @@ from marlmerge.config.rules import check_values, num, positive, require
 
 MPH_TO_MPS = 0.44704
 OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel")
+RAMP_JOINS = ("forced", "when_safe")
+"""Values of `ramp.join`."""
 """Values of `ego.observation` (the tables: `marlmerge.sim.observation.EGO_LAYOUTS`)."""
 MAX_LATENCY_S = 2.0
 """`sensing.latency_s` is at most this (the core keeps that many steps of observations)."""
@@ -165,6 +167,37 @@ class TrafficConfig:
     the driver's desired speed."""
     warmup_s: float = num(20.0, 0.0, MAX_WARMUP_S)
     """A freshly seeded road is filled with steady flow and then simulated this long."""
+
+
+@dataclass(frozen=True)
+class RampConfig:
+    """Demand on the ramp. By default (`flow_vph = 0`) the paper's protocol: one ramp vehicle,
+    the ego, at a time, the next departing when its episode ends.
+
+    With `flow_vph > 0`, ramp flow: ramp vehicles arrive at the ramp start as their own Poisson
+    stream (`flow_vph` vehicles per hour), each at a start speed drawn from
+    `ego.start_speed_mps` with a driver drawn as the mainline's (`driver.*`), and enter once the
+    ramp ahead of them leaves room (an entrance queue, counted, never dropped). On the ramp they
+    follow each other by IDM; each is an agent whose command (a scripted merging driver or a
+    policy, `marlmerge.evaluation.ramp_flow`) is capped by that car following; it joins the
+    right lane once it overlaps it, as the ego does, and drives on as a neutral mainline driver.
+    There is no ego then: `TrafficCore.next_ego` is refused."""
+
+    flow_vph: float = num(0.0, 0.0, 3600.0)
+    """Ramp vehicles per hour (Poisson arrivals); 0: the paper's one ramp vehicle at a time."""
+    join: str = "forced"
+    """How a ramp vehicle of ramp flow joins the right lane: "forced" (the paper's: once its
+    body overlaps the lane, x >= the overlap point) or "when_safe" (as SUMO's lane changers:
+    anywhere in the merge zone, at the first step the gap at its position is safe: both bumper
+    gaps above half `driver.min_gap_m` and neither it nor its new follower has to brake harder than
+    `driver.safe_brake_mps2` by IDM; the zone is then a parallel acceleration lane that ends at
+    the merge point, where a vehicle that has not joined stops, following the lane's end by
+    IDM as a standing obstacle all along the ramp, as SUMO's vehicles do)."""
+
+    @property
+    def flowing(self) -> bool:
+        """Ramp flow mode: many merging vehicles, no ego."""
+        return self.flow_vph > 0.0
 
 
 @dataclass(frozen=True)
@@ -426,6 +459,7 @@ class ScenarioConfig:
     sim: SimConfig = field(default_factory=SimConfig)
     sensing: SensingConfig = field(default_factory=SensingConfig)
     sample: SampleConfig = field(default_factory=SampleConfig)
+    ramp: RampConfig = field(default_factory=RampConfig)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -455,6 +489,48 @@ def load_scenario(path: str | Path) -> ScenarioConfig:
         return from_dict(ScenarioConfig, data)
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None
+
+
+def require_ego(cfg: ScenarioConfig, what: str) -> None:
+    """Refuse ramp flow where the one ego is needed (the agent views, episodes of an ego)."""
+    if cfg.ramp.flowing:
+        raise ValueError(
+            f"{what}: ramp.flow_vph = {cfg.ramp.flow_vph} runs ramp flow, which has no ego; "
+            "this runs the paper's one ramp vehicle at a time (ramp.flow_vph = 0). Measure ramp "
+            "flow with `marlmerge rampflow` (marlmerge.evaluation.ramp_flow)"
+        )
+
+
+def _ramp_checks(cfg: ScenarioConfig) -> list[tuple[bool, str]]:
+    """Ramp flow runs perfect sensing, no safety filter and one traffic for every world (the
+    options that belong to the one ego); a join mode it knows."""
+    if not cfg.ramp.flowing:
+        return [
+            (
+                cfg.ramp.join == "forced",
+                f"ramp.join = {cfg.ramp.join!r} needs ramp flow (ramp.flow_vph > 0); the paper's "
+                "one ego joins by force",
+            )
+        ]
+    flow = cfg.ramp.flow_vph
+    return [
+        (
+            cfg.ramp.join in RAMP_JOINS,
+            f"ramp.join must be one of {', '.join(map(repr, RAMP_JOINS))}, got {cfg.ramp.join!r}",
+        ),
+        (
+            not cfg.sensing.active,
+            f"ramp.flow_vph = {flow}: ramp flow runs perfect sensing; [sensing] must be left out",
+        ),
+        (
+            not cfg.ego.safety_filter,
+            f"ramp.flow_vph = {flow}: ego.safety_filter belongs to the one ego and must be false",
+        ),
+        (
+            not cfg.sample.active,
+            f"ramp.flow_vph = {flow}: [sample] draws traffic per ego; leave it out with ramp flow",
+        ),
+    ]
 
 
 def validate(cfg: ScenarioConfig) -> None:
@@ -517,6 +593,7 @@ def validate(cfg: ScenarioConfig) -> None:
         ),
         *_sensing_checks(cfg),
         *_sample_checks(cfg),
+        *_ramp_checks(cfg),
     ]
     require(checks)
 

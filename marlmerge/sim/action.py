@@ -34,3 +34,30 @@ def as_actions(
         where = f" of world {int(np.argmax(bad))}" if a.size > 1 else ""
         raise ValueError(f"{who}{where} must be finite, got {a[bad][0]}")
     return a
+
+
+def agent_actions(
+    actions: Any, possible_agents: list[str], live_agents: list[str]
+) -> dict[str, float]:
+    """A PettingZoo step's actions {agent: action} as {live agent: m/s^2}: a dict, no unknown
+    agent, an action for every live agent, each one number (`as_actions`); the action of a
+    possible agent that is not live is checked the same way, then dropped (torchrl's PettingZoo
+    wrapper sends one for every agent of a group)."""
+    if not isinstance(actions, dict):
+        raise ValueError(f"actions must be a dict of agent -> action, got {type(actions)}")
+    unknown = [a for a in actions if a not in possible_agents]
+    if unknown:
+        raise ValueError(
+            f"unknown agent {unknown[0]!r} in actions (possible agents: {possible_agents})"
+        )
+    missing = [a for a in live_agents if a not in actions]
+    if missing:
+        raise ValueError(f"no action for live agent {missing[0]!r}")
+    out = {}
+    for agent, act in actions.items():
+        live = agent in live_agents
+        who = f"action of {agent!r}" + ("" if live else " (not live this step)")
+        val = float(as_actions(act, (1,), who, exact=True)[0])
+        if live:
+            out[agent] = val  # the core clips to the agent's bounds
+    return out

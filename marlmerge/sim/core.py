@@ -46,7 +46,7 @@ PARALLEL_MIN_WORLDS = 64
 """From this many worlds on, `rollout` runs worlds in parallel threads (same results)."""
 WARMUP_CHUNK_STEPS = 10
 """Warm-up runs in calls of this many steps (each call reserves slots for its arrivals)."""
-STATE_DICT_VERSION = 2
+STATE_DICT_VERSION = 3
 """2: the sensor's arrays and the `wi` rows of sensing and the safety filter; version-1 states
 (no sensing) still load."""
 _ARRAYS = ("vf", "vi", "wf", "wi", "lanes", "sched", "ring", "noise")
@@ -126,6 +126,11 @@ class TrafficCore:
         self.cfg = cfg
         self.fixed_scenarios = scenarios is not None
         """Every world runs a scenario it was given (`scenarios`)."""
+        if proposal is not None and cfg.ramp.flowing:
+            raise ValueError(
+                f"proposal: ramp.flow_vph = {cfg.ramp.flow_vph} runs ramp flow, which has no ego "
+                "to estimate rates for"
+            )
         if scenario_source is not None and not cfg.sample.active:
             raise ValueError("scenario_source needs a scenario with [sample] ranges to replace")
         self.scenario_source = scenario_source
@@ -169,7 +174,7 @@ class TrafficCore:
         self.vi[:, L.VI_ID] = -1
         self.wf = np.zeros((b, L.WF_ROWS))
         self.wi = np.zeros((b, L.WI_ROWS), dtype=np.int64)
-        self.lanes = np.full((b, 2, n_slots), -1, dtype=np.int64)
+        self.lanes = np.full((b, 3, n_slots), -1, dtype=np.int64)
         self.sched = np.zeros((b, 3, q_len, L.SC_COLS))
         self._allocate_sensor()
 
@@ -242,7 +247,8 @@ class TrafficCore:
         never runs short, in the worlds `rows` (indices; all if None)."""
         rows = np.arange(self.batch_size) if rows is None else rows
         if rows.size:
-            need_slots = int(self.wi[rows, L.WI_N_ACTIVE].max()) + 2 * k + 3
+            per_step = 3 if self.cfg.ramp.flowing else 2  # arrivals a step at most
+            need_slots = int(self.wi[rows, L.WI_N_ACTIVE].max()) + per_step * k + 3
             if need_slots > self.n_slots:
                 self._grow_slots(max(need_slots, 2 * self.n_slots))
         dt = self.cfg.sim.dt_s
@@ -256,6 +262,14 @@ class TrafficCore:
                     self._reserve_ring(b, stream)
                     t_last = max(self._last_time(b, stream), 0.0)
                     self._push(b, stream, self.streams.arrivals(b, stream, t_last))
+            if self.cfg.ramp.flowing:  # the ramp's arrivals, drawn ahead as the lanes' are
+                while (
+                    self.wi[b, L.WI_COUNT_RIGHT + EGO_STREAM] < 2
+                    or self._last_time(b, EGO_STREAM) <= horizon
+                ):
+                    self._reserve_ring(b, EGO_STREAM)
+                    t_last = max(self._last_time(b, EGO_STREAM), 0.0)
+                    self._push(b, EGO_STREAM, self.streams.ramp_arrivals(b, t_last))
             while self.wi[b, L.WI_COUNT_RIGHT + EGO_STREAM] < 2:
                 self._reserve_ring(b, EGO_STREAM)
                 self._push(b, EGO_STREAM, self.streams.departures(b))
@@ -296,7 +310,8 @@ class TrafficCore:
         self, seed: int | Sequence[int] | None = None, mask: np.ndarray | None = None
     ) -> None:
         """Fresh roads in steady flow for the worlds in `mask` (all if None), each warmed up for
-        `traffic.warmup_s`, then an ego departs.
+        `traffic.warmup_s`, then an ego departs (with ramp flow: the ramp's vehicles arrive
+        from the start of the warm-up, and no ego departs).
 
         seed: an int seeds world i with `SeedSequence(seed, spawn_key=(i,))`; a sequence gives
         each world its own seed (`marlmerge.sim.streams`). Without a seed a world's generators
@@ -327,7 +342,8 @@ class TrafficCore:
             k = min(WARMUP_CHUNK_STEPS, n_warm - done)
             self._call(nan, k, self._no_roster, self._no_cmd, sel)
             done += k
-        self.next_ego(sel)
+        if not self.cfg.ramp.flowing:
+            self.next_ego(sel)
 
     def _draw_scenario(self, b: int) -> None:
         """World `b` draws its traffic (`[sample]`) for the road it is about to get."""
@@ -383,6 +399,11 @@ class TrafficCore:
 
         A merged ego stays on the road as a neutral mainline vehicle; after a collision the ego and
         the vehicles it hit are towed away; a truncated ego is removed."""
+        if self.cfg.ramp.flowing:
+            raise ValueError(
+                f"next_ego: ramp.flow_vph = {self.cfg.ramp.flow_vph} runs ramp flow, which has "
+                "no ego (its ramp vehicles are agents: marlmerge.evaluation.ramp_flow)"
+            )
         sel = self._mask(mask)
         if not sel.any():
             return
@@ -566,6 +587,27 @@ class TrafficCore:
         kernels.observe(self.arrays, self.sensor, self.params, roster.rows, ego_obs, hw_obs)
         return ego_obs, hw_obs
 
+    def ramp_agents(self, k: int) -> tuple[Roster, np.ndarray]:
+        """Ramp flow: the first `k` vehicles on each world's ramp (downstream first) as agents
+        (a `Roster`: pass it to `rollout` with their commands as `roster_accel`) and what each
+        sees, [B, k, 7] float64: the paper's seven ego features, scaled, with perfect sensing
+        (zeros where the ramp holds fewer; `roster.mask`)."""
+        if not self.cfg.ramp.flowing:
+            raise ValueError("ramp_agents needs ramp flow (ramp.flow_vph > 0)")
+        rows = np.zeros((L.RO_ROWS, self.batch_size, k), dtype=np.int64)
+        obs = np.zeros((self.batch_size, k, 7))
+        kernels.ramp_agents(self.arrays, self.params, rows, obs)
+        return Roster(rows), obs
+
+    def observe_agents(self, roster: Roster) -> np.ndarray:
+        """Ramp flow: what each agent of `roster` sees now, [B, K, 7] float64 (`ramp_agents`;
+        an agent that has joined the right lane sees its leader and follower)."""
+        if not self.cfg.ramp.flowing:
+            raise ValueError("observe_agents needs ramp flow (ramp.flow_vph > 0)")
+        obs = np.zeros((self.batch_size, roster.n_agents, 7))
+        kernels.observe_agents(self.arrays, self.params, roster.rows, obs)
+        return obs
+
     def ego_gaps(self) -> EgoGaps:
         """Gap-front and gap-back vehicles of the ego after the last call (computed there)."""
         wf, wi = self.wf, self.wi
@@ -666,6 +708,8 @@ class TrafficCore:
         self.vi[sel, L.VI_ACTIVE, 1:] = 0
         self.vi[sel, L.VI_LANE, 1:] = RAMP
         self.sched[sel, :2, :, L.SC_T] = np.inf  # every drawn arrival postponed forever
+        if self.cfg.ramp.flowing:
+            self.sched[sel, EGO_STREAM, :, L.SC_T] = np.inf
         kernels.rebuild_lanes(self.arrays, self.params, sel)
 
     # ------------------------------------------------------------------ checkpoints
@@ -694,7 +738,7 @@ class TrafficCore:
     def load_state_dict(self, saved: dict[str, Any]) -> None:
         """Restore a `state_dict` of a core with the same config and batch size."""
         version = saved.get("version")
-        if version not in (1, STATE_DICT_VERSION):
+        if version not in (1, 2, STATE_DICT_VERSION):
             raise ValueError(
                 f"core state version {version!r} is not {STATE_DICT_VERSION} (saved by another "
                 "version of marlmerge)"
@@ -706,15 +750,24 @@ class TrafficCore:
             raise ValueError(
                 f"core state has {saved['batch_size']} worlds, this core {self.batch_size}"
             )
-        arrays = saved["arrays"] if version == STATE_DICT_VERSION else _upgrade_v1(saved, self)
+        arrays = saved["arrays"]
+        if version == 1:
+            arrays = _upgrade_v1(saved, self)
+        if version in (1, 2):
+            arrays = _upgrade_v2(arrays)
         for name in _ARRAYS:
             a = np.asarray(arrays[name])
             if a.ndim != getattr(self, name).ndim:
                 raise ValueError(f"core state: array {name!r} has shape {a.shape}")
             setattr(self, name, a.copy())
-        if self.wi.shape[1] != L.WI_ROWS or self.ring.shape != (
-            self.batch_size * self._ring_len,
-            self.obs_size,
+        if (
+            self.wi.shape[1] != L.WI_ROWS
+            or self.lanes.shape[1] != 3
+            or self.ring.shape
+            != (
+                self.batch_size * self._ring_len,
+                self.obs_size,
+            )
         ):
             raise ValueError("core state: per-world or sensor arrays do not fit this scenario")
         self.streams.seed(
@@ -742,6 +795,12 @@ class TrafficCore:
                 x = self.vf[b, L.VF_X, slots]
                 if sorted(slots.tolist()) != want.tolist() or np.any(np.diff(x) > 0):
                     raise ValueError(f"core state: lane lists of world {b} are inconsistent")
+            slots = self.lanes[b, L.RAMP_LIST, : int(self.wi[b, L.WI_N_RAMP])]
+            on_ramp = (self.vi[b, L.VI_ACTIVE] == 1) & (self.vi[b, L.VI_LANE] == RAMP)
+            on_ramp[EGO] = False
+            x = self.vf[b, L.VF_X, slots]
+            if sorted(slots.tolist()) != np.flatnonzero(on_ramp).tolist() or np.any(np.diff(x) > 0):
+                raise ValueError(f"core state: the ramp list of world {b} is inconsistent")
 
     @property
     def egos_running(self) -> np.ndarray:
@@ -758,8 +817,29 @@ def _upgrade_v1(saved: dict[str, Any], core: TrafficCore) -> dict[str, np.ndarra
     wi = arrays["wi"]
     if wi.ndim != 2 or wi.shape[1] != L.WI_ROWS_V1:
         raise ValueError(f"core state: array 'wi' has shape {wi.shape}")
-    pad = np.zeros((wi.shape[0], L.WI_ROWS - L.WI_ROWS_V1), dtype=np.int64)
+    pad = np.zeros((wi.shape[0], L.WI_ROWS_V2 - L.WI_ROWS_V1), dtype=np.int64)
     arrays["wi"] = np.concatenate([wi, pad], axis=1)
     arrays["ring"] = np.zeros((core.batch_size * core._ring_len, core.obs_size))
     arrays["noise"] = np.zeros((core.batch_size, 0, L.NZ_COLS))
     return arrays
+
+
+def _upgrade_v2(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The arrays of a version-2 state (saved before ramp flow): the new `vi`, `wf` and `wi`
+    rows zero, an empty ramp list."""
+    out = {name: np.asarray(a) for name, a in arrays.items()}
+    for name, rows, old in (
+        ("vi", L.VI_ROWS, L.VI_ROWS_V2),
+        ("wf", L.WF_ROWS, L.WF_ROWS_V2),
+        ("wi", L.WI_ROWS, L.WI_ROWS_V2),
+    ):
+        a = out[name]
+        if a.shape[1] != old:
+            raise ValueError(f"core state: array {name!r} has shape {a.shape}")
+        pad = np.zeros((a.shape[0], rows - old) + a.shape[2:], dtype=a.dtype)
+        out[name] = np.concatenate([a, pad], axis=1)
+    lanes = out["lanes"]
+    if lanes.ndim != 3 or lanes.shape[1] != 2:
+        raise ValueError(f"core state: array 'lanes' has shape {lanes.shape}")
+    out["lanes"] = np.concatenate([lanes, np.full_like(lanes[:, :1], -1)], axis=1)
+    return out

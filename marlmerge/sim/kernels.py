@@ -41,12 +41,14 @@ from marlmerge.sim.layout import (
     P_LC_COOLDOWN,
     P_NOISE_ON,
     P_POSITION_SCALE,
+    P_RAMP_FLOW,
     P_SENSE_ON,
     P_SENSING,
     P_SPEED_SCALE,
     P_V_LIMIT,
     P_X_RAMP_START,
     RAMP,
+    RAMP_LIST,
     RIGHT,
     RO_EXITED,
     RO_ID,
@@ -105,6 +107,7 @@ from marlmerge.sim.layout import (
     WI_FRONT,
     WI_HEAD_RIGHT,
     WI_N_ACTIVE,
+    WI_N_RAMP,
     WI_N_RIGHT,
     WI_NEED,
     WI_NEXT_ID,
@@ -116,7 +119,14 @@ from marlmerge.sim.layout import (
 )
 from marlmerge.sim.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
 from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, sensed_output
-from marlmerge.sim.step import deactivate, ego_gaps, free_slot, neighbours, substep
+from marlmerge.sim.step import (
+    agent_gaps,
+    deactivate,
+    ego_gaps,
+    free_slot,
+    neighbours,
+    substep,
+)
 
 NAN = math.nan
 INF = math.inf
@@ -149,20 +159,28 @@ def _trace_row(S: tuple, b: int, trace: np.ndarray, i: int) -> None:
 def _roster_step(
     S: tuple, b: int, p: np.ndarray, roster: np.ndarray, hw_terms: np.ndarray, live: bool
 ) -> None:
-    """Add the step's terms of every counting highway agent (while the ego runs), then let go of
-    the agents that left the road: towed away after a collision, or off the downstream end
-    (`RO_EXITED`)."""
+    """Add the step's terms of every counting highway agent (while the ego runs; with ramp flow,
+    of every ramp agent: the ego's `EGO_TERMS` for its own merge, with its realised acceleration
+    and no jerk term), then let go of the agents that left the road: towed away after a
+    collision, or off the downstream end (`RO_EXITED`)."""
     vf, vi, wf, wi, lanes, sched = S
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
     close_f, close_b = ego_closeness(p, x_e, v_e, wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB])
     blamed = ego_to_blame(p, wi[b, WI_EGO_REAR] == 1, wf[b, WF_EGO_IN_LANE])
     truncated = wi[b, WI_STEP_OUTCOME] == OUTCOME_TRUNCATED
+    flowing = p[P_RAMP_FLOW] > 0.0
     for j in range(roster.shape[2]):
         s = roster[RO_SLOT, b, j]
         if roster[RO_MASK, b, j] == 0 or s <= EGO:
             continue
         same = vi[b, VI_ID, s] == roster[RO_ID, b, j]
-        if live and same:
+        if flowing and same:  # a ramp agent: the ego's terms, for its own merge
+            _, _, d_f, _, v_b, d_b = agent_gaps(S, b, p, s)
+            add_ego_terms(
+                p, hw_terms[:, j], b, vf[b, VF_A, s], vf[b, VF_X, s], vf[b, VF_V, s], d_f, d_b,
+                v_b, (vi[b, VI_FLAGS, s] & EV_HIT) != 0, 0.0,
+            )  # fmt: skip
+        elif live and same:
             add_highway_terms(
                 p,
                 hw_terms,
@@ -257,13 +275,14 @@ def _needs_service(S: tuple, b: int, p: np.ndarray, k: int) -> int:
 @kernel
 def _short(S: tuple, b: int, p: np.ndarray, k: int) -> int:
     vf, vi, wf, wi, lanes, sched = S
-    if wi[b, WI_N_ACTIVE] + 2 * k + 3 > vi.shape[2]:
+    flowing = p[P_RAMP_FLOW] > 0.0  # ramp flow: a third stream of arrivals, the ramp's
+    if wi[b, WI_N_ACTIVE] + (3 if flowing else 2) * k + 3 > vi.shape[2]:
         return 1
     if p[P_NOISE_ON] > 0.0 and wi[b, WI_NOISE_COUNT] < k + 2:
         return 1  # drawn measurement errors for k steps and one departure
     q_len = sched.shape[2]
     horizon = wf[b, WF_T] + (k + 1) * p[P_DT]
-    for stream in range(2):
+    for stream in range(3 if flowing else 2):
         count = wi[b, WI_COUNT_RIGHT + stream]
         last = (wi[b, WI_HEAD_RIGHT + stream] + count - 1) % q_len
         if count == 0 or count + 1 >= q_len or sched[b, stream, last, SC_T] <= horizon:
@@ -580,6 +599,65 @@ def _in(out: np.ndarray, b: int, j: int, s: int) -> bool:
 
 
 @kernel
+def _rebuild_ramp(S: tuple, b: int) -> int:
+    """The ramp list of world `b` from scratch (ramp flow): every active vehicle on the ramp but
+    the ego, downstream first. Returns how many."""
+    vf, vi, wf, wi, lanes, sched = S
+    n = 0
+    for s in range(1, vi.shape[2]):
+        if vi[b, VI_ACTIVE, s] == 1 and vi[b, VI_LANE, s] == RAMP:
+            i = n
+            while i > 0 and vf[b, VF_X, lanes[b, RAMP_LIST, i - 1]] < vf[b, VF_X, s]:
+                lanes[b, RAMP_LIST, i] = lanes[b, RAMP_LIST, i - 1]
+                i -= 1
+            lanes[b, RAMP_LIST, i] = s
+            n += 1
+    for i in range(n, lanes.shape[2]):
+        lanes[b, RAMP_LIST, i] = -1
+    wi[b, WI_N_RAMP] = n
+    return n
+
+
+@kernel
+def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
+    """Ramp flow: the first K vehicles of each world's ramp list (downstream first) as agents,
+    rows [RO_ROWS, B, K] (slot, id, mask; -1 / 0 where the ramp holds fewer), and what each
+    sees, obs [B, K, 7] (`observe_agents`)."""
+    vf, vi, wf, wi, lanes, sched = S
+    for b in range(vf.shape[0]):
+        for j in range(rows.shape[2]):
+            rows[RO_EXITED, b, j] = 0
+            if j >= wi[b, WI_N_RAMP]:
+                rows[RO_SLOT, b, j], rows[RO_ID, b, j], rows[RO_MASK, b, j] = -1, -1, 0
+            else:
+                s = lanes[b, RAMP_LIST, j]
+                rows[RO_SLOT, b, j], rows[RO_ID, b, j], rows[RO_MASK, b, j] = s, vi[b, VI_ID, s], 1
+    observe_agents(S, p, rows, obs)
+
+
+@kernel
+def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
+    """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, 7]: the paper's
+    seven ego features with perfect sensing, its gap vehicles as `agent_gaps` finds them (zeros
+    where masked)."""
+    vf, vi, wf, wi, lanes, sched = S
+    for b in range(vf.shape[0]):
+        pb = p[b]
+        ss, ps, v_limit = pb[P_SPEED_SCALE], pb[P_POSITION_SCALE], pb[P_V_LIMIT]
+        for j in range(rows.shape[2]):
+            s = rows[RO_SLOT, b, j]
+            if rows[RO_MASK, b, j] == 0 or s < 0 or vi[b, VI_ID, s] != rows[RO_ID, b, j]:
+                for c in range(obs.shape[2]):
+                    obs[b, j, c] = 0.0
+                continue
+            x_f, v_f, _, x_b, v_b, _ = agent_gaps(S, b, pb, s)
+            obs[b, j, 0], obs[b, j, 1] = vf[b, VF_V, s] / ss, vf[b, VF_X, s] / ps
+            obs[b, j, 2], obs[b, j, 3] = v_f / ss, x_f / ps
+            obs[b, j, 4], obs[b, j, 5] = v_b / ss, x_b / ps
+            obs[b, j, 6] = v_limit / ss
+
+
+@kernel
 def rebuild_lanes(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
     """Lane lists of the worlds of `mask` from scratch (after placing vehicles directly): every
     active vehicle with a highway lane, downstream first (equal positions: lower slot first)."""
@@ -601,6 +679,7 @@ def rebuild_lanes(S: tuple, p: np.ndarray, mask: np.ndarray) -> None:
             ll.resort(S, b, lane)  # stable: equal positions keep slot order
         if vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP:
             n_active += 1
+        n_active += _rebuild_ramp(S, b)
         wi[b, WI_N_ACTIVE] = n_active
         neighbours(S, b, p[b])
         ego_gaps(S, b, p[b])

@@ -11,7 +11,7 @@ when vehicles overlap (a collision), which one insertion-sort pass repairs.
 from __future__ import annotations
 
 from marlmerge.sim.jit import kernel
-from marlmerge.sim.layout import VF_X, WI_N_RIGHT
+from marlmerge.sim.layout import RAMP_LIST, VF_X, WI_N_RAMP, WI_N_RIGHT
 
 
 @kernel(inline=True)
@@ -94,3 +94,32 @@ def resort(S: tuple, b: int, lane: int) -> None:
             lanes[b, lane, j + 1] = lanes[b, lane, j]
             j -= 1
         lanes[b, lane, j + 1] = s
+
+
+# ---- the ramp list (ramp flow): `lanes[b, RAMP_LIST, :WI_N_RAMP]`, downstream first. Vehicles
+# enter at its tail and leave it when they join the right lane (or are towed away); they follow
+# each other, so its order never changes.
+
+
+@kernel(inline=True)
+def ramp_append(S: tuple, b: int, slot: int) -> None:
+    """Put `slot` at the tail of the ramp list (the ramp's most upstream vehicle)."""
+    vf, vi, wf, wi, lanes, sched = S
+    n = wi[b, WI_N_RAMP]
+    lanes[b, RAMP_LIST, n] = slot
+    wi[b, WI_N_RAMP] = n + 1
+
+
+@kernel(inline=True)
+def ramp_remove(S: tuple, b: int, slot: int) -> bool:
+    """Take `slot` out of the ramp list; False if it was not there."""
+    vf, vi, wf, wi, lanes, sched = S
+    n = wi[b, WI_N_RAMP]
+    for i in range(n):
+        if lanes[b, RAMP_LIST, i] == slot:
+            for j in range(i, n - 1):
+                lanes[b, RAMP_LIST, j] = lanes[b, RAMP_LIST, j + 1]
+            lanes[b, RAMP_LIST, n - 1] = -1
+            wi[b, WI_N_RAMP] = n - 1
+            return True
+    return False

@@ -8,7 +8,8 @@ one world lies together in memory while a kernel steps it:
     vi  [B, VI_ROWS, N] int64    per vehicle slot: lane, active, profile, id, collided
     wf  [B, WF_ROWS]    float64  per world: time, the ego's clocks, its gap vehicles, counters
     wi  [B, WI_ROWS]    int64    per world: the ego's outcome, counts, lane-list lengths, ...
-    lanes [B, 2, N]     int64    each highway lane's vehicle slots, sorted downstream first
+    lanes [B, 3, N]     int64    each highway lane's vehicle slots, sorted downstream first,
+                                 then the ramp's (`RAMP_LIST`, ramp flow only)
     sched [B, 3, Q, SC_COLS] float64  drawn arrivals (lanes RIGHT, LEFT) and ego departures (2)
 
 and, with imperfect sensing (`[sensing]`), the sensor's state `X = (ring, noise)`:
@@ -42,7 +43,11 @@ RAMP, RIGHT, LEFT = np.int64(-1), np.int64(0), np.int64(1)
 EGO = np.int64(0)
 """The ego's slot."""
 EGO_STREAM = np.int64(2)
-"""Row of `sched` that holds the drawn ego departures (rows 0 and 1 are the lanes' arrivals)."""
+"""Row of `sched` that holds the drawn ego departures (rows 0 and 1 are the lanes' arrivals);
+with ramp flow (`ramp.flow_vph > 0`) the drawn ramp arrivals instead."""
+RAMP_LIST = np.int64(2)
+"""Row of `lanes` that holds the ramp's vehicles in ramp flow, downstream first (its length:
+`WI_N_RAMP`). The ego never is in it."""
 
 OUTCOME_NONE, OUTCOME_SUCCESS, OUTCOME_COLLISION, OUTCOME_TRUNCATED = 0, 1, 2, 3
 OUTCOME_NAMES = {0: "running", 1: "success", 2: "collision", 3: "truncated"}
@@ -60,12 +65,15 @@ speed if none), acc (the acceleration being applied)."""
 
 # ---- vi rows: per-slot ints
 VI_LANE, VI_ACTIVE, VI_PROFILE, VI_ID, VI_COLLIDED = range(5)
-VI_LEADER, VI_FOLLOWER, VI_FLAGS = 5, 6, 7
-VI_ROWS = 8
+VI_LEADER, VI_FOLLOWER, VI_FLAGS, VI_RAMP = 5, 6, 7, 8
+VI_ROWS = 9
+VI_ROWS_V2 = 8
+"""`vi` rows of a version-2 core state (before ramp flow)."""
 """lane, active (0/1), profile, vehicle_id (unique per world, never reused), collided (awaiting
 removal with the ego's episode); derived each step: leader and follower slots (-1 none), and
 event flags (`EV_*` bits): collided or exited during the last call, and flags of the current
-simulator step."""
+simulator step; ramp (ramp flow: 1 from the vehicle's arrival at the ramp start until it passes
+the merge point x = 0, else 0)."""
 EV_COLLIDED, EV_EXITED = 1, 2
 """... in a collision / off the road's downstream end during the last call."""
 EV_HIT, EV_TOW, EV_YIELDING, EV_CHANGE, EV_CONTROLLED = 4, 8, 16, 32, 64
@@ -89,14 +97,20 @@ changing lanes, driven by an external command."""
     WF_AFTER_V0,
     WF_AFTER_T,
     WF_AFTER_POL,
-) = range(15)
-WF_ROWS = 15
+    WF_RAMP_TRAVEL_SUM,
+    WF_RAMP_WAIT_SUM,
+) = range(17)
+WF_ROWS = 17
+WF_ROWS_V2 = 15
+"""`wf` rows of a version-2 core state (before ramp flow)."""
 """t_s; ego_time_s (since departure), ego_stall_s, ego_in_lane_s (since it joined the right lane);
 entry_delay_s (summed over entered vehicles: entry time minus drawn arrival time); the ego's gap
 vehicles after the last step: d_front_m, d_back_m (bumper gaps, sensing range if none), x_front_m,
 x_back_m, v_front_mps, v_back_mps; the ego acceleration applied in the last step; the driver
 parameters (v0, T, politeness) the current ego drives with once it has merged and stays on the
-road as a mainline vehicle."""
+road as a mainline vehicle; ramp flow: the summed travel times of the ramp vehicles that
+passed the merge point (from their drawn arrival at the ramp start to x = 0) and the summed
+waits at the ramp's entrance of those that entered."""
 
 # ---- wi rows: per-world ints
 (
@@ -133,8 +147,18 @@ road as a mainline vehicle."""
     WI_NOISE_HEAD,
     WI_NOISE_COUNT,
     WI_FILTER_COUNT,
-) = range(33)
-WI_ROWS = 33
+    WI_N_RAMP,
+    WI_RAMP_ENTERED,
+    WI_RAMP_JOINED,
+    WI_RAMP_PASSED,
+    WI_RAMP_COLLISIONS,
+    WI_RAMP_QUEUE,
+    WI_RAMP_QUEUE_MAX,
+    WI_RAMP_TOWED,
+) = range(41)
+WI_ROWS = 41
+WI_ROWS_V2 = 33
+"""`wi` rows of a version-2 core state (before ramp flow)."""
 """ego_outcome (OUTCOME_*), ego_count, next_id, background_collisions, steps (simulator steps of
 this world), entered, exited (vehicles in / out since reset), lane-list lengths (right, left),
 the ego's gap-front and gap-back slots (-1 none), active vehicles, ring heads and counts of the
@@ -145,7 +169,11 @@ what the last call did (`WI_CALL`): the outcome reached (0 if none), the ego's c
 partner and whether it was the rear vehicle, simulator steps run, and how many of them the ego
 was running at (0 when it was not running at the start of the call); the sensor's ring head, the
 head and count of the drawn measurement errors, and the safety filter's interventions in the
-current ego's episode (simulator steps whose command it overrode)."""
+current ego's episode (simulator steps whose command it overrode); ramp flow: the ramp list's
+length, ramp vehicles that entered the ramp, joined the right lane and passed the merge point,
+collisions a ramp vehicle was in (before it passed the merge point; not counted as background
+collisions), the ramp's entrance queue and its longest since reset, and ramp vehicles towed away
+after a collision before they passed the merge point."""
 WI_ROWS_V1 = 29
 """`wi` rows of a version-1 core state (before the sensing and safety-filter rows)."""
 WI_CALL = slice(WI_STEP_OUTCOME, WI_EGO_STEPS + 1)
@@ -259,6 +287,9 @@ _PARAMS = (
     "obs_accel",
     "accel_scale_mps2",
     "w_jerk",
+    "ramp_flow",
+    "ramp_join_when_safe",
+    "x_zone_start_m",
 )
 (
     P_DT,
@@ -339,6 +370,9 @@ _PARAMS = (
     P_OBS_ACCEL,
     P_ACCEL_SCALE,
     P_W_JERK,
+    P_RAMP_FLOW,
+    P_RAMP_WHEN_SAFE,
+    P_X_ZONE_START,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -439,4 +473,7 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "back_ttc_s": w.back_ttc_s,
         "obs_accel": float(e.observation == "extended_accel"),
         "w_jerk": w.w_jerk,
+        "ramp_flow": float(cfg.ramp.flowing),
+        "ramp_join_when_safe": float(cfg.ramp.join == "when_safe"),
+        "x_zone_start_m": cfg.road.x_zone_start_m,
     }

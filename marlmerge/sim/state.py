@@ -63,6 +63,9 @@ class TrafficState:
     collided = _Row("vi", L.VI_COLLIDED, "in a collision, awaiting removal", as_bool=True)
     leader = _Row("vi", L.VI_LEADER, "slot of the own-lane leader (-1 none)")
     follower = _Row("vi", L.VI_FOLLOWER, "slot of the own-lane follower (-1 none)")
+    from_ramp = _Row(
+        "vi", L.VI_RAMP, "ramp flow: came by the ramp, not yet past the merge point", as_bool=True
+    )
     # per world [B]
     t_s = _Row("wf", L.WF_T, "world time")
     ego_time_s = _Row("wf", L.WF_EGO_T, "time since the current ego departed")
@@ -86,6 +89,25 @@ class TrafficState:
     )
     steps = _Row("wi", L.WI_STEPS, "simulator steps since reset")
     vehicle_steps = _Row("wi", L.WI_VEH_STEPS, "vehicle-steps simulated since reset")
+    # ramp flow, per world [B] (since reset)
+    ramp_entered = _Row("wi", L.WI_RAMP_ENTERED, "ramp vehicles that entered the ramp")
+    ramp_joined = _Row("wi", L.WI_RAMP_JOINED, "ramp vehicles that joined the right lane")
+    ramp_passed = _Row("wi", L.WI_RAMP_PASSED, "ramp vehicles that passed the merge point x = 0")
+    ramp_collisions = _Row(
+        "wi", L.WI_RAMP_COLLISIONS, "collisions a ramp vehicle was in before the merge point"
+    )
+    ramp_towed = _Row(
+        "wi", L.WI_RAMP_TOWED, "ramp vehicles towed away after a collision before x = 0"
+    )
+    ramp_queue = _Row("wi", L.WI_RAMP_QUEUE, "ramp vehicles waiting at the ramp's entrance")
+    ramp_max_queue = _Row("wi", L.WI_RAMP_QUEUE_MAX, "longest ramp entrance queue")
+    n_on_ramp = _Row("wi", L.WI_N_RAMP, "vehicles on the ramp (not yet joined)")
+    ramp_travel_s = _Row(
+        "wf",
+        L.WF_RAMP_TRAVEL_SUM,
+        "summed travel times (drawn arrival at the ramp start to x = 0) of the passed ones",
+    )
+    ramp_wait_s = _Row("wf", L.WF_RAMP_WAIT_SUM, "summed entrance waits of the entered ones")
 
 
 @dataclass(frozen=True)
@@ -157,7 +179,8 @@ class Rollout:
     ego_terms: np.ndarray  # [B, len(EGO_TERMS)] summed over the steps the ego ran
     trace: np.ndarray  # [B, k, TR_COLS] the ego after each step (rows < substeps are valid)
     ego_obs: np.ndarray  # [B, obs size of ego.observation] float32, what the ego sees after it
-    hw_terms: np.ndarray  # [B, K, len(LEARNED_HIGHWAY_TERMS)] summed while counting
+    hw_terms: np.ndarray  # [B, K, len(LEARNED_HIGHWAY_TERMS)] summed while counting (ramp flow:
+    # the ramp agents' EGO_TERMS)
     hw_obs: np.ndarray  # [B, K, len(HIGHWAY_FEATURES)] float32 (zeros where masked)
     left_road: np.ndarray  # [B, K] bool: counting at the start, gone at the end
     exited: np.ndarray  # [B, K] bool: ... by the road's downstream end

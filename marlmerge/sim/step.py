@@ -28,6 +28,7 @@ from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import (
     COOPERATIVE,
     EGO,
+    EGO_STREAM,
     EV_CHANGE,
     EV_COLLIDED,
     EV_CONTROLLED,
@@ -35,6 +36,7 @@ from marlmerge.sim.layout import (
     EV_HIT,
     EV_TOW,
     LEFT,
+    NEUTRAL,
     OUTCOME_COLLISION,
     OUTCOME_NONE,
     OUTCOME_SUCCESS,
@@ -60,6 +62,8 @@ from marlmerge.sim.layout import (
     P_MAX_ACCEL,
     P_MAX_BRAKE,
     P_MAX_EPISODE,
+    P_RAMP_FLOW,
+    P_RAMP_WHEN_SAFE,
     P_S0,
     P_SAFE_BRAKE,
     P_SENSING,
@@ -70,9 +74,12 @@ from marlmerge.sim.layout import (
     P_X_ENTRANCE,
     P_X_EXIT,
     P_X_OVERLAP,
+    P_X_RAMP_START,
+    P_X_ZONE_START,
     P_YIELD_LC_BONUS,
     P_YIELD_MAX_BRAKE,
     RAMP,
+    RAMP_LIST,
     RIGHT,
     RO_ID,
     RO_MASK,
@@ -102,6 +109,7 @@ from marlmerge.sim.layout import (
     VI_LANE,
     VI_LEADER,
     VI_PROFILE,
+    VI_RAMP,
     WF_DB,
     WF_DELAY_SUM,
     WF_DF,
@@ -109,6 +117,8 @@ from marlmerge.sim.layout import (
     WF_EGO_IN_LANE,
     WF_EGO_STALL,
     WF_EGO_T,
+    WF_RAMP_TRAVEL_SUM,
+    WF_RAMP_WAIT_SUM,
     WF_T,
     WF_VB,
     WF_VF,
@@ -125,12 +135,20 @@ from marlmerge.sim.layout import (
     WI_FRONT,
     WI_HEAD_RIGHT,
     WI_N_ACTIVE,
+    WI_N_RAMP,
     WI_N_RIGHT,
     WI_NEXT_ID,
     WI_OUTCOME,
     WI_OVERFLOW,
     WI_QUEUE_MAX,
     WI_QUEUE_RIGHT,
+    WI_RAMP_COLLISIONS,
+    WI_RAMP_ENTERED,
+    WI_RAMP_JOINED,
+    WI_RAMP_PASSED,
+    WI_RAMP_QUEUE,
+    WI_RAMP_QUEUE_MAX,
+    WI_RAMP_TOWED,
     WI_STEP_OUTCOME,
     WI_STEPS,
     WI_VEH_STEPS,
@@ -141,30 +159,51 @@ INF = math.inf
 
 
 @kernel(inline=True)
+def _link(S: tuple, b: int, row: int, n: int, length: float) -> None:
+    """Leader, follower, bumper gap and leader speed of the `n` vehicles of `lanes[b, row]`
+    (downstream first): gap inf and the own speed when there is no leader."""
+    vf, vi, wf, wi, lanes, sched = S
+    prev = -1
+    for i in range(n):
+        s = lanes[b, row, i]
+        vi[b, VI_LEADER, s] = prev
+        vi[b, VI_FOLLOWER, s] = -1
+        if prev >= 0:
+            vf[b, VF_GAP, s] = vf[b, VF_X, prev] - length - vf[b, VF_X, s]
+            vf[b, VF_VLEAD, s] = vf[b, VF_V, prev]
+            vi[b, VI_FOLLOWER, prev] = s
+        else:
+            vf[b, VF_GAP, s] = INF
+            vf[b, VF_VLEAD, s] = vf[b, VF_V, s]
+        prev = s
+
+
+@kernel(inline=True)
 def neighbours(S: tuple, b: int, p: np.ndarray) -> None:
     """Leader, follower, bumper gap and leader speed of every vehicle from the lane lists (gap
     inf and the own speed when there is no leader). The ego on the ramp has no neighbours."""
     vf, vi, wf, wi, lanes, sched = S
     length = p[P_LEN]
     for lane in range(2):
-        prev = -1
-        for i in range(wi[b, WI_N_RIGHT + lane]):
-            s = lanes[b, lane, i]
-            vi[b, VI_LEADER, s] = prev
-            vi[b, VI_FOLLOWER, s] = -1
-            if prev >= 0:
-                vf[b, VF_GAP, s] = vf[b, VF_X, prev] - length - vf[b, VF_X, s]
-                vf[b, VF_VLEAD, s] = vf[b, VF_V, prev]
-                vi[b, VI_FOLLOWER, prev] = s
-            else:
-                vf[b, VF_GAP, s] = INF
-                vf[b, VF_VLEAD, s] = vf[b, VF_V, s]
-            prev = s
+        _link(S, b, lane, wi[b, WI_N_RIGHT + lane], length)
     if vi[b, VI_LANE, EGO] == RAMP:
         vi[b, VI_LEADER, EGO] = -1
         vi[b, VI_FOLLOWER, EGO] = -1
         vf[b, VF_GAP, EGO] = INF
         vf[b, VF_VLEAD, EGO] = vf[b, VF_V, EGO]
+    _link(S, b, RAMP_LIST, wi[b, WI_N_RAMP], length)  # ramp flow: the ramp list, as a lane
+
+
+@kernel(inline=True)
+def merging_vehicle(S: tuple, b: int) -> tuple:
+    """(pending, x_m, v_mps) of the ramp vehicle the mainline drivers react to: the ego while it
+    is on the ramp, or with ramp flow the ramp's first vehicle (the ramp list's head)."""
+    vf, vi, wf, wi, lanes, sched = S
+    if wi[b, WI_N_RAMP] > 0:
+        s = lanes[b, RAMP_LIST, 0]
+        return True, vf[b, VF_X, s], vf[b, VF_V, s]
+    pending = vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP
+    return pending, vf[b, VF_X, EGO], vf[b, VF_V, EGO]
 
 
 @kernel(inline=True)
@@ -253,7 +292,9 @@ def mark_controlled(
     S: tuple, b: int, p: np.ndarray, roster: np.ndarray, roster_cmd: np.ndarray
 ) -> None:
     """Flag (`EV_CONTROLLED`) the highway agents driven by an external command this step and
-    put the command, clipped to the agent bounds, into `VF_ACC`. NaN commands: scripted."""
+    put the command, clipped to the agent bounds, into `VF_ACC`. NaN commands: scripted. With
+    ramp flow the agents are ramp vehicles: clipped to the ego's bounds, on the ramp (capped by
+    IDM behind a ramp leader, `_advance_ramp`) and, as the ego, after joining."""
     vf, vi, wf, wi, lanes, sched = S
     for j in range(roster.shape[2]):
         s = roster[RO_SLOT, b, j]
@@ -261,7 +302,10 @@ def mark_controlled(
         if s <= EGO or roster[RO_MASK, b, j] == 0 or math.isnan(cmd):
             continue
         if vi[b, VI_ACTIVE, s] == 1 and vi[b, VI_ID, s] == roster[RO_ID, b, j]:
-            vf[b, VF_ACC, s] = min(max(cmd, p[P_HW_LO]), p[P_HW_HI])
+            if p[P_RAMP_FLOW] > 0.0:  # ramp flow: the agents are ramp vehicles, ego bounds
+                vf[b, VF_ACC, s] = min(max(cmd, p[P_EGO_LO]), p[P_EGO_HI])
+            else:
+                vf[b, VF_ACC, s] = min(max(cmd, p[P_HW_LO]), p[P_HW_HI])
             vi[b, VI_FLAGS, s] |= EV_CONTROLLED
 
 
@@ -280,6 +324,8 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
     ego_on = vi[b, VI_ACTIVE, EGO] == 1
     pending = ego_on and vi[b, VI_LANE, EGO] == RAMP
     x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    m_pending, x_m, v_m = merging_vehicle(S, b)
+    flowing = p[P_RAMP_FLOW] > 0.0
     ego_idm = math.isnan(ego_cmd)
     ego_a = min(max(ego_cmd, p[P_EGO_LO]), p[P_EGO_HI])
     filtering = pending and p[P_FILTER] > 0.0 and wi[b, WI_OUTCOME] == OUTCOME_NONE
@@ -302,7 +348,10 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
             elif flags & EV_CONTROLLED:
                 acc = vf[b, VF_ACC, s]
             else:
-                acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pending, x_e, v_e)
+                # ramp flow: a driver alongside or past the ramp vehicle does not yield to it
+                # (with joins when safe, both would wait for ever)
+                pend = m_pending and not (flowing and x_m - x < length)
+                acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pend, x_m, v_m)
             vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED)
             _move(S, b, s, acc, dt)
             x_lead, v_lead = x, v
@@ -317,7 +366,37 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
         vi[b, VI_FLAGS, EGO] &= ~(EV_HIT | EV_TOW)
         _move(S, b, EGO, acc, dt)
         moved += 1
+    if wi[b, WI_N_RAMP] > 0:
+        moved += _advance_ramp(S, b, p, dp)
     return moved
+
+
+@kernel
+def _advance_ramp(S: tuple, b: int, p: np.ndarray, dp: tuple) -> int:
+    """Ramp flow: the ramp's vehicles on the pre-step state, downstream first: IDM behind their
+    ramp leader (their own v0 and T); an agent's command (`EV_CONTROLLED`) in its place, capped
+    by that IDM when a ramp leader is ahead; with `ramp.join = "when_safe"`, also capped by IDM
+    behind the acceleration lane's end (x = 0) as a standing obstacle. Returns how many moved."""
+    vf, vi, wf, wi, lanes, sched = S
+    dt, length = p[P_DT], dp[6]
+    when_safe = p[P_RAMP_WHEN_SAFE] > 0.0
+    n = wi[b, WI_N_RAMP]
+    x_lead, v_lead = INF, 0.0
+    for i in range(n):
+        s = lanes[b, RAMP_LIST, i]
+        x, v = vf[b, VF_X, s], vf[b, VF_V, s]
+        gap = x_lead - length - x if i > 0 else INF
+        vl = v_lead if i > 0 else v
+        acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, False, x, v)
+        flags = vi[b, VI_FLAGS, s]
+        if flags & EV_CONTROLLED:
+            acc = min(vf[b, VF_ACC, s], acc) if i > 0 else vf[b, VF_ACC, s]
+        if when_safe:  # the acceleration lane ends at x = 0: a standing obstacle there
+            acc = min(acc, _scripted_accel(S, b, s, dp, x, v, -x, 0.0, False, x, v))
+        vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED)
+        _move(S, b, s, acc, dt)
+        x_lead, v_lead = x, v
+    return n
 
 
 @kernel
@@ -400,8 +479,7 @@ def lane_change_decisions(S: tuple, b: int, p: np.ndarray) -> int:
     """Flag (`EV_CHANGE`) the scripted mainline vehicles that change lanes after this step,
     decided on the pre-step state. Returns how many."""
     vf, vi, wf, wi, lanes, sched = S
-    pending = vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP
-    x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    pending, x_e, v_e = merging_vehicle(S, b)
     dp = driver_params(p)
     n = 0
     for lane in range(2):
@@ -442,8 +520,13 @@ def deactivate(S: tuple, b: int, s: int) -> None:
     lane = vi[b, VI_LANE, s]
     if lane >= RIGHT:
         ll.remove(S, b, lane, s)
+    elif s != EGO and wi[b, WI_N_RAMP] > 0:
+        ll.ramp_remove(S, b, s)
     if vi[b, VI_ACTIVE, s] == 1:
         wi[b, WI_N_ACTIVE] -= 1
+        if vi[b, VI_RAMP, s] == 1:  # a ramp vehicle towed away before the merge point
+            vi[b, VI_RAMP, s] = 0
+            wi[b, WI_RAMP_TOWED] += 1
     vi[b, VI_ACTIVE, s] = 0
 
 
@@ -476,7 +559,7 @@ def free_slot(S: tuple, b: int) -> int:
 
 
 @kernel(inline=True)
-def spawn(
+def fill_slot(
     S: tuple,
     b: int,
     s: int,
@@ -489,7 +572,8 @@ def spawn(
     profile: int,
     p: np.ndarray,
 ) -> None:
-    """A new mainline vehicle in slot `s` (a fresh vehicle id), put into its lane list."""
+    """A new vehicle in slot `s` (a fresh vehicle id), in no lane list yet (an arrival then goes
+    into its lane's list, a ramp vehicle into the ramp's)."""
     vf, vi, wf, wi, lanes, sched = S
     vf[b, VF_X, s] = x
     vf[b, VF_V, s] = v
@@ -504,10 +588,10 @@ def spawn(
     vi[b, VI_PROFILE, s] = profile
     vi[b, VI_ID, s] = wi[b, WI_NEXT_ID]
     vi[b, VI_COLLIDED, s] = 0
+    vi[b, VI_RAMP, s] = 0
     vi[b, VI_FLAGS, s] &= EV_COLLIDED | EV_EXITED  # what the slot saw earlier in this call
     wi[b, WI_NEXT_ID] += 1
     wi[b, WI_N_ACTIVE] += 1
-    ll.insert(S, b, lane, s)
 
 
 @kernel(inline=True)
@@ -541,7 +625,7 @@ def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
                 if s < 0:
                     wi[b, WI_OVERFLOW] = 1
                 else:
-                    spawn(
+                    fill_slot(
                         S,
                         b,
                         s,
@@ -554,6 +638,7 @@ def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
                         int(sched[b, lane, head, SC_PROFILE]),
                         p,
                     )
+                    ll.insert(S, b, lane, s)
                     wf[b, WF_DELAY_SUM] += t - sched[b, lane, head, SC_T]
                     wi[b, WI_ENTERED] += 1
                     head = (head + 1) % q_len
@@ -565,6 +650,112 @@ def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
             queue += 1
         wi[b, WI_QUEUE_RIGHT + lane] = queue
         wi[b, WI_QUEUE_MAX] = max(wi[b, WI_QUEUE_MAX], queue)
+    if p[P_RAMP_FLOW] > 0.0:
+        ramp_arrivals(S, b, p)
+
+
+@kernel
+def ramp_arrivals(S: tuple, b: int, p: np.ndarray) -> None:
+    """Ramp flow: the first drawn ramp vehicle whose time has come enters at the ramp start at
+    its drawn speed once the gap to the ramp's last vehicle is its IDM desired gap (as on the
+    lanes); otherwise it waits in the ramp's entrance queue. Its age counts from its drawn
+    arrival, so that it includes the wait."""
+    vf, vi, wf, wi, lanes, sched = S
+    t, q_len, st = wf[b, WF_T], sched.shape[2], EGO_STREAM
+    head, count = wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st]
+    x0 = p[P_X_RAMP_START]
+    if count > 0 and sched[b, st, head, SC_T] <= t:
+        n = wi[b, WI_N_RAMP]
+        v_enter = sched[b, st, head, SC_V]
+        if n > 0:
+            tail = lanes[b, RAMP_LIST, n - 1]
+            v_enter = entry_speed(
+                v_enter,
+                vf[b, VF_X, tail] - p[P_LEN] - x0,
+                vf[b, VF_V, tail],
+                sched[b, st, head, SC_T_HW],
+                p[P_A],
+                p[P_B],
+                p[P_S0],
+            )
+        s = free_slot(S, b) if v_enter >= 0.0 else -1
+        if v_enter >= 0.0 and s < 0:
+            wi[b, WI_OVERFLOW] = 1
+        elif s >= 0:
+            t_drawn = sched[b, st, head, SC_T]
+            fill_slot(
+                S, b, s, RAMP, x0, v_enter, sched[b, st, head, SC_V0],
+                sched[b, st, head, SC_T_HW], sched[b, st, head, SC_POL], NEUTRAL, p,
+            )  # fmt: skip
+            vf[b, VF_AGE, s] = t - t_drawn
+            vi[b, VI_RAMP, s] = 1
+            ll.ramp_append(S, b, s)
+            wf[b, WF_RAMP_WAIT_SUM] += t - t_drawn
+            wi[b, WI_RAMP_ENTERED] += 1
+            head = (head + 1) % q_len
+            count -= 1
+            wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st] = head, count
+    queue = 0
+    while queue < count and sched[b, st, (head + queue) % q_len, SC_T] <= t:
+        queue += 1
+    wi[b, WI_RAMP_QUEUE] = queue
+    wi[b, WI_RAMP_QUEUE_MAX] = max(wi[b, WI_RAMP_QUEUE_MAX], queue)
+
+
+@kernel
+def _safe_join(S: tuple, b: int, s: int, p: np.ndarray) -> bool:
+    """Ramp vehicle `s` may join the right lane at its position now (`ramp.join = "when_safe"`):
+    both bumper gaps above half the jam gap s0, and by IDM neither it (behind its new leader)
+    nor its new follower (behind it) brakes harder than `safe_brake_mps2`. (Half: a driver that
+    yields to a vehicle waiting at the lane's end stops about s0 behind it, and a check at s0
+    would leave both waiting for ever.)"""
+    vf, vi, wf, wi, lanes, sched = S
+    dp = driver_params(p)
+    length, s0, limit = p[P_LEN], 0.5 * p[P_S0], -p[P_SAFE_BRAKE]
+    x, v = vf[b, VF_X, s], vf[b, VF_V, s]
+    lead, follow = ll.neighbours_at(S, b, RIGHT, x)
+    if lead >= 0:
+        gap = vf[b, VF_X, lead] - length - x
+        if gap <= s0 or _idm_of(S, b, s, gap, vf[b, VF_V, lead], dp) < limit:
+            return False
+    if follow >= 0:
+        gap = x - length - vf[b, VF_X, follow]
+        if gap <= s0 or _idm_of(S, b, follow, gap, v, dp) < limit:
+            return False
+    return True
+
+
+@kernel
+def ramp_joins(S: tuple, b: int, p: np.ndarray) -> None:
+    """Ramp flow: ramp vehicles join the right lane (`ramp.join`: once they overlap it, as the
+    ego does, or when it is safe in the merge zone) and drive on as neutral mainline drivers;
+    those past the merge point (x >= 0) count as passed, with their travel time from their
+    drawn arrival at the ramp start."""
+    vf, vi, wf, wi, lanes, sched = S
+    when_safe = p[P_RAMP_WHEN_SAFE] > 0.0
+    i = 0
+    while i < wi[b, WI_N_RAMP]:
+        s = lanes[b, RAMP_LIST, i]
+        x = vf[b, VF_X, s]
+        if (not when_safe and x >= p[P_X_OVERLAP]) or (
+            when_safe and x >= p[P_X_ZONE_START] and (x >= 0.0 or _safe_join(S, b, s, p))
+        ):  # (past the lane's end, which IDM's braking rules out: joined by force)
+            ll.ramp_remove(S, b, s)
+            vi[b, VI_LANE, s] = RIGHT
+            vf[b, VF_SINCE_LC, s] = 0.0
+            ll.insert(S, b, RIGHT, s)
+            wi[b, WI_RAMP_JOINED] += 1
+        else:
+            i += 1
+    for lane in range(2):
+        for i in range(wi[b, WI_N_RIGHT + lane]):
+            s = lanes[b, lane, i]
+            if vf[b, VF_X, s] < 0.0:
+                break
+            if vi[b, VI_RAMP, s] == 1:
+                vi[b, VI_RAMP, s] = 0
+                wf[b, WF_RAMP_TRAVEL_SUM] += vf[b, VF_AGE, s]
+                wi[b, WI_RAMP_PASSED] += 1
 
 
 @kernel(inline=True)
@@ -611,8 +802,13 @@ def collisions(S: tuple, b: int, p: np.ndarray) -> tuple[bool, bool]:
             else:
                 vi[b, VI_FLAGS, rear] |= EV_TOW
                 vi[b, VI_FLAGS, front] |= EV_TOW
-                wi[b, WI_BG_COLLISIONS] += 1
+                if vi[b, VI_RAMP, rear] == 1 or vi[b, VI_RAMP, front] == 1:
+                    wi[b, WI_RAMP_COLLISIONS] += 1
+                else:
+                    wi[b, WI_BG_COLLISIONS] += 1
                 towed += 1
+    if wi[b, WI_N_RAMP] > 1:
+        towed += _ramp_collisions(S, b)
     if towed:
         for lane in range(2):
             i = 0
@@ -622,7 +818,32 @@ def collisions(S: tuple, b: int, p: np.ndarray) -> tuple[bool, bool]:
                     deactivate(S, b, s)
                 else:
                     i += 1
+        i = 0
+        while i < wi[b, WI_N_RAMP]:
+            s = lanes[b, RAMP_LIST, i]
+            if vi[b, VI_FLAGS, s] & EV_TOW:
+                deactivate(S, b, s)
+            else:
+                i += 1
     return ego_hit, towed > 0
+
+
+@kernel
+def _ramp_collisions(S: tuple, b: int) -> int:
+    """Ramp flow: overlapping consecutive vehicles of the ramp collide (`WI_RAMP_COLLISIONS`)
+    and are flagged to be towed away. Returns how many collisions."""
+    vf, vi, wf, wi, lanes, sched = S
+    n = 0
+    for i in range(1, wi[b, WI_N_RAMP]):
+        rear = lanes[b, RAMP_LIST, i]
+        if vf[b, VF_GAP, rear] >= 0.0:
+            continue
+        front = lanes[b, RAMP_LIST, i - 1]
+        vi[b, VI_FLAGS, rear] |= EV_COLLIDED | EV_HIT | EV_TOW
+        vi[b, VI_FLAGS, front] |= EV_COLLIDED | EV_HIT | EV_TOW
+        wi[b, WI_RAMP_COLLISIONS] += 1
+        n += 1
+    return n
 
 
 @kernel(inline=True)
@@ -680,6 +901,30 @@ def ego_gaps(S: tuple, b: int, p: np.ndarray) -> None:
         wf[b, WF_XB], wf[b, WF_DB], wf[b, WF_VB] = x_e - rng, rng, v_limit
 
 
+@kernel(inline=True)
+def agent_gaps(S: tuple, b: int, p: np.ndarray, s: int) -> tuple:
+    """Ramp flow: slot `s`'s gap vehicles as the ego's (`ego_gaps`): its right-lane neighbours
+    (projected while on the ramp), within the sensing range, a missing one virtual at the
+    range's edge at the speed limit. Returns (x_front, v_front, d_front, x_back, v_back,
+    d_back): positions, speeds and bumper gaps."""
+    vf, vi, wf, wi, lanes, sched = S
+    x = vf[b, VF_X, s]
+    if vi[b, VI_LANE, s] == RAMP:
+        front, back = ll.neighbours_at(S, b, RIGHT, x)
+    else:
+        front, back = vi[b, VI_LEADER, s], vi[b, VI_FOLLOWER, s]
+    rng, length, v_limit = p[P_SENSING], p[P_LEN], p[P_V_LIMIT]
+    x_f, v_f, d_f = x + rng, v_limit, rng
+    if front >= 0 and vf[b, VF_X, front] - x <= rng:
+        x_f, v_f = vf[b, VF_X, front], vf[b, VF_V, front]
+        d_f = x_f - x - length
+    x_b, v_b, d_b = x - rng, v_limit, rng
+    if back >= 0 and x - vf[b, VF_X, back] <= rng:
+        x_b, v_b = vf[b, VF_X, back], vf[b, VF_V, back]
+        d_b = x - x_b - length
+    return x_f, v_f, d_f, x_b, v_b, d_b
+
+
 @kernel
 def substep(
     S: tuple, b: int, p: np.ndarray, ego_cmd: float, roster: np.ndarray, roster_cmd: np.ndarray
@@ -703,6 +948,8 @@ def substep(
     exits(S, b, p)
     arrivals(S, b, p)
     ego_join(S, b, p)
+    if p[P_RAMP_FLOW] > 0.0:
+        ramp_joins(S, b, p)
     running = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
     neighbours(S, b, p)
     ego_hit, towed = collisions(S, b, p)

@@ -215,6 +215,20 @@ class Streams:
         out[:, SC_PROFILE] = NEUTRAL
         return out
 
+    def ramp_arrivals(self, b: int, t_last_s: float) -> np.ndarray:
+        """Ramp flow (`ramp.flow_vph > 0`): the next `CHUNK` ramp vehicles after `t_last_s`,
+        [CHUNK, SC_COLS], from the ego departures' generator (ramp flow sends no ego): Poisson
+        arrival times, a start speed from `ego.start_speed_mps` (at most the driver's desired
+        speed) and the driver they are, neutral once merged."""
+        g, cfg = self.gens[b][EGO_STREAM], self.cfgs[b]
+        out = np.zeros((CHUNK, SC_COLS))
+        out[:, SC_T] = t_last_s + np.cumsum(g.exponential(3600.0 / cfg.ramp.flow_vph, size=CHUNK))
+        out[:, SC_V] = g.uniform(*cfg.ego.start_speed_mps, size=CHUNK)
+        out[:, SC_V0], out[:, SC_T_HW], out[:, SC_POL] = self._drivers(cfg, g, CHUNK)
+        out[:, SC_PROFILE] = NEUTRAL
+        out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])
+        return out
+
     def noise(self, b: int) -> np.ndarray:
         """Standard-normal errors of the next `CHUNK` measurements of world `b`'s ego sensor,
         [CHUNK, NZ_COLS] (columns `NZ_*`; the core scales them by the configured stds)."""

@@ -110,6 +110,47 @@ class EgoTracker:
         return finished
 
 
+class RampTracker:
+    """Ramp flow: sums each ramp agent's reward terms over its own merge; emits an `egos.csv` row
+    (the merging vehicle as the ego) when it ends. Columns of the `"ramp"` group [B, K]."""
+
+    def __init__(self, num_worlds: int, n_agents: int, step_time_s: float):
+        self.sums = np.zeros((num_worlds, n_agents, len(EGO_TERMS)))  # [B, K, terms]
+        self.steps = np.zeros((num_worlds, n_agents), dtype=np.int64)  # env steps of its merge
+        self.egos = 0
+        self.step_time_s = step_time_s
+
+    def update(self, batch: TensorDictBase, sim_step_end: int, k: int, log: CsvLog) -> list[dict]:
+        """batch: collector output [B, T]. Returns the ended merges' rows, in time order."""
+        nxt = batch.get("next")
+        terms = torch.stack([nxt.get(("ramp", "reward_terms", t)) for t in EGO_TERMS], -1)
+        terms = terms.reshape(*batch.shape, *self.steps.shape[1:], len(EGO_TERMS)).numpy()
+        acting = batch.get(("ramp", "mask")).numpy()  # [B, T, K]
+        outcome = nxt.get(("ramp", "outcome")).numpy()  # [B, T, K]
+        b, t_len = batch.batch_size
+        finished = []
+        for t in range(t_len):
+            self.sums += terms[:, t]
+            self.steps += acting[:, t]
+            sim_step = sim_step_end - (t_len - 1 - t) * b * k
+            for w, j in zip(*np.nonzero(outcome[:, t]), strict=True):
+                row = {
+                    "ego": self.egos,
+                    "sim_step": sim_step,
+                    "world": int(w),
+                    "outcome": OUTCOME_NAMES[int(outcome[w, t, j])],
+                    "time_s": round(float(self.steps[w, j] * self.step_time_s), 3),
+                    "total_reward": float(total_reward(self.sums[w, j])),
+                    **{name: float(self.sums[w, j, i]) for i, name in enumerate(EGO_TERMS)},
+                }
+                log.write([row[f] for f in EGO_FIELDS])
+                finished.append(row)
+                self.egos += 1
+                self.sums[w, j] = 0.0
+                self.steps[w, j] = 0
+        return finished
+
+
 def _read_rows(path: Path, fields: tuple[str, ...]) -> list[list[str]]:
     """The data rows of a log written by `CsvLog` (a missing or foreign file is an error)."""
     if not path.is_file():

@@ -83,7 +83,13 @@ def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
     resolve_device(cfg.device)
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
-    check_levels(cfg)
+    scen = check_levels(cfg)
+    if scen.ramp.flowing:
+        raise ValueError(
+            f"--seeds: scenario {cfg.scenario!r} runs ramp flow (ramp.flow_vph = "
+            f"{scen.ramp.flow_vph}); train its seeds one by one (marlmerge train --set seed=S) "
+            "or with marlmerge sweep"
+        )
 
 
 @dataclass

@@ -39,6 +39,7 @@ from marlmerge.learners.loading import make_learner as make_peer_learner
 from marlmerge.learners.quadq import GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.sim import OUTCOME_SUCCESS
+from marlmerge.sim.observation import EGO_FEATURES
 from marlmerge.training.checkpoint import open_checkpoint
 from marlmerge.training.levels import LevelReplay
 from marlmerge.training.logs import (
@@ -46,6 +47,7 @@ from marlmerge.training.logs import (
     LOSS_FIELDS,
     CsvLog,
     EgoTracker,
+    RampTracker,
     progress_bar,
     tb_ego,
     tb_loss,
@@ -60,6 +62,13 @@ from marlmerge.training.loop import (
     run_loop,
     save_checkpoint,
     transition_rows,
+)
+from marlmerge.training.ramp import (
+    RAMP_AGENTS,
+    RampGroupPolicy,
+    check_ramp_training,
+    make_ramp_env,
+    ramp_rows,
 )
 from marlmerge.training.select import Selection
 from marlmerge.views.torchrl_env import BatchedMergeEnv
@@ -155,14 +164,25 @@ class RunLogs:
     tb: Any
 
     @classmethod
-    def open(cls, out: Path, cfg: TrainConfig, step_time_s: float, ckpt: dict | None) -> RunLogs:
+    def open(
+        cls,
+        out: Path,
+        cfg: TrainConfig,
+        step_time_s: float,
+        ckpt: dict | None,
+        ramp_agents: int | None = None,
+    ) -> RunLogs:
         """New logs, or (resuming) the logs cut back to the checkpoint, so that the curves
-        continue without overlap."""
+        continue without overlap; with `ramp_agents` (ramp flow) a row per merging vehicle."""
         tb = tensorboard(out)
         kept_loss, kept_egos = (ckpt["loss_rows"], ckpt["ego_rows"]) if ckpt else (None, None)
         loss = CsvLog(out / "loss.csv", LOSS_FIELDS, kept_loss, tb_loss(tb))
         egos = CsvLog(out / "egos.csv", EGO_FIELDS, kept_egos, tb_ego(tb))
-        tracker = EgoTracker(cfg.num_worlds, step_time_s)
+        tracker: EgoTracker | RampTracker = (
+            EgoTracker(cfg.num_worlds, step_time_s)
+            if ramp_agents is None
+            else RampTracker(cfg.num_worlds, ramp_agents, step_time_s)
+        )
         if ckpt is not None:
             tracker.sums[:] = ckpt["tracker_sums"]
             tracker.steps[:] = ckpt["tracker_steps"]
@@ -210,8 +230,11 @@ def train(
     """Run (or resume) training; writes logs, checkpoints, the policy, the evaluation and the
     plots. `stop_after_sim_steps` ends the run abruptly at that step without checkpointing, as a
     kill would (used by the resume tests)."""
-    run_scenario(cfg)  # an unknown scenario or device fails before anything is written
+    scen = run_scenario(cfg)  # an unknown scenario or device fails before anything is written
     resolve_device(cfg.device)
+    flowing = scen.ramp.flowing  # ramp flow: one shared policy for every merging vehicle
+    if flowing:
+        check_ramp_training(cfg, scen)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -222,11 +245,11 @@ def train(
     if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
         return finish_resumed(cfg, out, ckpt)
 
-    env = make_env(cfg)
+    env = make_ramp_env(cfg, scen) if flowing else make_env(cfg)
     scen, k = env.cfg, env.cfg.sim.action_repeat
-    ego = make_ego_group(cfg, scen, env.observation_spec["observation"].shape[-1])
+    ego = make_ego_group(cfg, scen, len(EGO_FEATURES) if flowing else env.core.obs_size)
     sim_steps = 0
-    levels = env.core.scenario_source
+    levels = None if flowing else env.core.scenario_source
     if ckpt is not None:
         ego.load_state_dict(ckpt["group"])
         env.load_sim_state(ckpt["env"])
@@ -237,11 +260,11 @@ def train(
     if ckpt is not None and selection is not None:
         selection.load_state_dict(ckpt["select"])
     ego.explore_step = sim_steps
-    logs = RunLogs.open(out, cfg, k * scen.sim.dt_s, ckpt)
+    logs = RunLogs.open(out, cfg, k * scen.sim.dt_s, ckpt, RAMP_AGENTS if flowing else None)
     ego.on_loss = lambda update, loss: logs.loss.write([update, sim_steps, loss])
     collector = make_collector(
         env,
-        GroupPolicy(ego),
+        RampGroupPolicy(ego) if flowing else GroupPolicy(ego),
         cfg.num_worlds * cfg.env_steps_per_batch,
         cfg.total_sim_steps - sim_steps,
         k,
@@ -281,7 +304,7 @@ def train(
         return False
 
     t_start = time.perf_counter()
-    feeds = [(ego, functools.partial(ego_rows, ego))]
+    feeds = [(ego, functools.partial(ramp_rows if flowing else ego_rows, ego))]
     times = run_loop(collector, feeds, k, on_batch, after_updates)
     wall = time.perf_counter() - t_start
     if bar is not None:
@@ -435,12 +458,22 @@ def write_timing(out: Path, result: TrainResult, k: int) -> None:
 
 
 def evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:
-    """The greedy policy on the held-out roads (`evaluation.json`), and the run's figures."""
+    """The greedy policy on the held-out roads (`evaluation.json`), and the run's figures.
+    Ramp flow: the saved policy drives every ramp vehicle (`run_ramp_flow`) until about
+    `eval_episodes` have merged."""
     evaluation = None
-    if cfg.eval_episodes > 0:
+    scen = resolve_config(cfg.scenario)
+    if cfg.eval_episodes > 0 and scen.ramp.flowing:
+        from marlmerge.evaluation.ramp_flow import run_ramp_flow
+
+        worlds = min(cfg.eval_worlds, 8)
+        hours = max(cfg.eval_episodes / (scen.ramp.flow_vph * worlds), 0.05)
+        result = run_ramp_flow(scen, str(out), hours, worlds, cfg.eval_seed, skip_s=120.0)
+        evaluation = result.to_dict()
+        files.write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
+    elif cfg.eval_episodes > 0:
         from marlmerge.evaluation.rollout import evaluate_policy
 
-        scen = resolve_config(cfg.scenario)
         evaluation = evaluate_policy(
             greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
         )

@@ -146,7 +146,25 @@ def flow_config(cfg: ScenarioConfig, flow_vphpl: float) -> ScenarioConfig:
     return cfg.replace(**{"traffic.flow_vph_per_lane": float(flow_vphpl)})
 
 
-def drawn_arrivals(cfg: ScenarioConfig, seed: int, duration_s: float) -> list[np.ndarray]:
+def drawn_ramp_arrivals(
+    cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float
+) -> np.ndarray:
+    """Ramp flow: the ramp vehicles a world seeded `seed` draws up to `duration_s`, [n, 4] of
+    (time s, start speed m/s, desired speed m/s, time headway s)."""
+    streams = Streams(cfg, 1)
+    streams.seed(np.array([0]), world_seed_sequences(1, [seed], np.array([0])))
+    chunks, t_last = [], 0.0
+    while t_last <= duration_s:
+        c = streams.ramp_arrivals(0, t_last)
+        chunks.append(c)
+        t_last = float(c[-1, SC_T])
+    a = np.concatenate(chunks)
+    return a[a[:, SC_T] <= duration_s][:, [SC_T, SC_V, SC_V0, SC_T_HW]]
+
+
+def drawn_arrivals(
+    cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float
+) -> list[np.ndarray]:
     """The arrivals a world seeded `seed` draws for each lane up to `duration_s` (with `[sample]`,
     in the traffic it draws first): per lane an array [n, 4] of (time s, entry speed m/s, desired
     speed m/s, time headway s)."""

@@ -24,6 +24,7 @@ from marlmerge.validation.scenarios import (
     CarFollowingCase,
     Trajectories,
     drawn_arrivals,
+    drawn_ramp_arrivals,
 )
 
 
@@ -190,6 +191,49 @@ def run_flow(cfg: ScenarioConfig, seed: int, duration_s: float) -> FlowSamples:
     return FlowSamples(*(np.concatenate([p[j] for p in parts]) for j in range(5)))
 
 
+def ramp_network(folder: Path, cfg: ScenarioConfig) -> Path:
+    """The scenario's road with its ramp as a SUMO network in `folder`: the two mainline lanes
+    (edge `up`), the merge zone with the acceleration lane as its lane 0 (edge `zone`, from
+    x = -merge_zone_m to the merge point x = 0), the road downstream (`down`) and the ramp
+    (`ramp`, from the ramp start), all on marlmerge's x axis."""
+    import sumolib
+
+    road = cfg.road
+    x0, zone, v = road.x_entrance_m, road.x_zone_start_m, road.speed_limit_mps
+    y_ramp = -road.ramp_offset_m * 2
+    (folder / "n.nod.xml").write_text(
+        f'<nodes><node id="in" x="{x0}" y="0"/><node id="zone" x="{zone}" y="0"/>'
+        f'<node id="merge" x="0" y="0"/><node id="out" x="{road.x_exit_m}" y="0"/>'
+        f'<node id="ramp" x="{road.x_ramp_start_m}" y="{y_ramp}"/></nodes>'
+    )
+    (folder / "n.edg.xml").write_text(
+        f'<edges><edge id="up" from="in" to="zone" numLanes="2" speed="{v}"/>'
+        f'<edge id="zone" from="zone" to="merge" numLanes="3" speed="{v}"/>'
+        f'<edge id="down" from="merge" to="out" numLanes="2" speed="{v}"/>'
+        f'<edge id="ramp" from="ramp" to="zone" numLanes="1" speed="{v}" '
+        f'width="{road.ramp_width_m}"/></edges>'
+    )
+    (folder / "n.con.xml").write_text(
+        '<connections><connection from="up" to="zone" fromLane="0" toLane="1"/>'
+        '<connection from="up" to="zone" fromLane="1" toLane="2"/>'
+        '<connection from="ramp" to="zone" fromLane="0" toLane="0"/>'
+        '<connection from="zone" to="down" fromLane="1" toLane="0"/>'
+        '<connection from="zone" to="down" fromLane="2" toLane="1"/></connections>'
+    )
+    net = folder / "n.net.xml"
+    subprocess.run(
+        [
+            sumolib.checkBinary("netconvert"), "-n", str(folder / "n.nod.xml"),
+            "-e", str(folder / "n.edg.xml"), "-x", str(folder / "n.con.xml"),
+            "-o", str(net), "--no-turnarounds", "--default.lanewidth",
+            str(road.lane_width_m),
+        ],
+        check=True,
+        capture_output=True,
+    )  # fmt: skip
+    return net
+
+
 class RampRoad:
     """The scenario's road with its ramp in SUMO, for speed comparisons: the two mainline lanes
     fed by marlmerge's drawn arrivals, and a ramp vehicle sent whenever the previous one has
@@ -206,43 +250,11 @@ class RampRoad:
 
     def __enter__(self) -> RampRoad:
         import libsumo as traci
-        import sumolib
 
-        cfg, road = self.cfg, self.cfg.road
+        cfg = self.cfg
         self._tmp = tempfile.TemporaryDirectory()
         folder = Path(self._tmp.name)
-        x0, zone, v = road.x_entrance_m, road.x_zone_start_m, road.speed_limit_mps
-        y_ramp = -road.ramp_offset_m * 2
-        (folder / "n.nod.xml").write_text(
-            f'<nodes><node id="in" x="{x0}" y="0"/><node id="zone" x="{zone}" y="0"/>'
-            f'<node id="merge" x="0" y="0"/><node id="out" x="{road.x_exit_m}" y="0"/>'
-            f'<node id="ramp" x="{road.x_ramp_start_m}" y="{y_ramp}"/></nodes>'
-        )
-        (folder / "n.edg.xml").write_text(
-            f'<edges><edge id="up" from="in" to="zone" numLanes="2" speed="{v}"/>'
-            f'<edge id="zone" from="zone" to="merge" numLanes="3" speed="{v}"/>'
-            f'<edge id="down" from="merge" to="out" numLanes="2" speed="{v}"/>'
-            f'<edge id="ramp" from="ramp" to="zone" numLanes="1" speed="{v}" '
-            f'width="{road.ramp_width_m}"/></edges>'
-        )
-        (folder / "n.con.xml").write_text(
-            '<connections><connection from="up" to="zone" fromLane="0" toLane="1"/>'
-            '<connection from="up" to="zone" fromLane="1" toLane="2"/>'
-            '<connection from="ramp" to="zone" fromLane="0" toLane="0"/>'
-            '<connection from="zone" to="down" fromLane="1" toLane="0"/>'
-            '<connection from="zone" to="down" fromLane="2" toLane="1"/></connections>'
-        )
-        net = folder / "n.net.xml"
-        subprocess.run(
-            [
-                sumolib.checkBinary("netconvert"), "-n", str(folder / "n.nod.xml"),
-                "-e", str(folder / "n.edg.xml"), "-x", str(folder / "n.con.xml"),
-                "-o", str(net), "--no-turnarounds", "--default.lanewidth",
-                str(road.lane_width_m),
-            ],
-            check=True,
-            capture_output=True,
-        )  # fmt: skip
+        net = ramp_network(folder, cfg)
         lines = ['<routes><route id="main" edges="up zone down"/>']
         lines.append('<route id="ramp" edges="ramp zone down"/>')
         lines.append(_vtype(cfg, "ego_t", 1.0, float(np.mean(cfg.driver.time_headway_s))))
@@ -275,3 +287,99 @@ class RampRoad:
         self._traci.close()
         if self._tmp is not None:
             self._tmp.cleanup()
+
+
+def _ramp_routes(
+    cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float
+) -> list[str]:
+    """The mainline's drawn arrivals (`_mainline_routes`) and the ramp's (`drawn_ramp_arrivals`,
+    vehicles `r{i}` on route `ramp`) for a world seeded `seed`, vehicles sorted by departure."""
+    v_limit = cfg.road.speed_limit_mps
+    main = _mainline_routes(cfg, seed, duration_s, "main")
+    types = [line for line in main if line.startswith("<vType")]
+    vehicles = [
+        (float(line.split('depart="')[1].split('"')[0]), line) for line in main[len(types) :]
+    ]
+    for i, (t, v, v0, hw) in enumerate(drawn_ramp_arrivals(cfg, seed, duration_s)):
+        types.append(_vtype(cfg, f"rt{i}", v0 / v_limit, hw))
+        v = float(min(v, v0 * (1 - 1e-12)))
+        vehicles.append(
+            (
+                round(float(t), 1),
+                f'<vehicle id="r{i}" type="rt{i}" route="ramp" depart="{t:.1f}" departLane="0" '
+                f'departPos="0" departSpeed="{v!r}"/>',
+            )
+        )
+    vehicles.sort(key=lambda tv: tv[0])
+    return types + [line for _, line in vehicles]
+
+
+def run_merge(
+    cfg: ScenarioConfig,
+    seed: int | np.random.SeedSequence,
+    duration_s: float,
+    skip_s: float,
+    sumo_seed: int = 0,
+) -> dict[str, float]:
+    """Ramp flow in SUMO: the road of `ramp_network` fed the mainline and ramp arrivals that a
+    marlmerge world seeded `seed` draws (`ramp.flow_vph > 0`), SUMO's LC2013 merging from the
+    acceleration lane (a vehicle that finds no gap stops at its end). Counted in the window
+    [skip_s, duration_s]: ramp vehicles that entered and passed the merge point (entering
+    `down`), their summed travel times from their drawn arrival and entrance waits, collisions
+    and teleports, and the mainline's summed speeds and samples in the merge zone and upstream of
+    the ramp start (every 4 steps)."""
+    import libsumo as traci
+
+    from marlmerge.evaluation.ramp_flow import UPSTREAM_WINDOW_M
+
+    dt, road = cfg.sim.dt_s, cfg.road
+    drawn = {f"r{i}": row[0] for i, row in enumerate(drawn_ramp_arrivals(cfg, seed, duration_s))}
+    up_lo = road.x_ramp_start_m - UPSTREAM_WINDOW_M - road.x_entrance_m  # lane positions on `up`
+    up_hi = road.x_ramp_start_m - road.x_entrance_m
+    out = dict.fromkeys(("entered", "passed", "travel_s", "wait_s", "collisions", "teleports"), 0.0)
+    speeds = np.zeros(4)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        net = ramp_network(folder, cfg)
+        routes = folder / "merge.rou.xml"
+        lines = ['<routes><route id="main" edges="up zone down"/>']
+        lines.append('<route id="ramp" edges="ramp zone down"/>')
+        routes.write_text("\n".join(lines + _ramp_routes(cfg, seed, duration_s) + ["</routes>"]))
+        _start(net, routes, dt, sumo_seed)
+        on_ramp: dict[str, float] = {}
+        try:
+            for i in range(int(round(duration_s / dt))):
+                traci.simulationStep()
+                t = (i + 1) * dt
+                counting = t >= skip_s - 1e-9
+                for vid in traci.simulation.getDepartedIDList():
+                    if vid in drawn:
+                        on_ramp[vid] = drawn[vid]
+                        if counting:
+                            out["entered"] += 1
+                            out["wait_s"] += t - drawn[vid]
+                for vid in [v for v in on_ramp if traci.vehicle.getRoadID(v) == "down"]:
+                    if counting:
+                        out["passed"] += 1
+                        out["travel_s"] += t - on_ramp[vid]
+                    del on_ramp[vid]
+                if counting:
+                    out["collisions"] += sum(
+                        1 for v in traci.simulation.getCollidingVehiclesIDList() if v in drawn
+                    )
+                    out["teleports"] += len(traci.simulation.getStartingTeleportIDList())
+                if counting and i % 4 == 3:
+                    for lane in ("zone_1", "zone_2"):
+                        n = traci.lane.getLastStepVehicleNumber(lane)
+                        speeds[0] += traci.lane.getLastStepMeanSpeed(lane) * n
+                        speeds[1] += n
+                    for lane in ("up_0", "up_1"):
+                        for v in traci.lane.getLastStepVehicleIDs(lane):
+                            if up_lo <= traci.vehicle.getLanePosition(v) < up_hi:
+                                speeds[2] += traci.vehicle.getSpeed(v)
+                                speeds[3] += 1
+        finally:
+            traci.close()
+    names = ("speed_merge_sum", "speed_merge_n", "speed_up_sum", "speed_up_n")
+    out.update(zip(names, speeds.tolist(), strict=True))
+    return out

@@ -62,10 +62,10 @@ from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.config.presets import find_preset, resolve_config  # noqa: F401  (their home: presets)
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.sim.action import as_actions
+from marlmerge.sim.action import agent_actions
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
@@ -104,6 +104,7 @@ class RampMergeParallelEnv(ParallelEnv):
         if max_cycles is not None and (isinstance(max_cycles, bool) or max_cycles < 1):
             raise ValueError(f"max_cycles must be None or an integer >= 1, got {max_cycles!r}")
         self.cfg = resolve_config(config, **(overrides or {}))
+        require_ego(self.cfg, "RampMergeParallelEnv")
         self.render_mode = render_mode
         self.control = control
         self.max_cycles = max_cycles
@@ -197,24 +198,7 @@ class RampMergeParallelEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ step
     def _parse_actions(self, actions: dict[str, Any]) -> dict[str, float]:
-        if not isinstance(actions, dict):
-            raise ValueError(f"actions must be a dict of agent -> action, got {type(actions)}")
-        unknown = [a for a in actions if a not in self._action_spaces]
-        if unknown:
-            raise ValueError(
-                f"unknown agent {unknown[0]!r} in actions (possible agents: {self.possible_agents})"
-            )
-        missing = [a for a in self.agents if a not in actions]
-        if missing:
-            raise ValueError(f"no action for live agent {missing[0]!r}")
-        out = {}
-        for agent, act in actions.items():  # a not-live agent's action is checked, then ignored
-            live = agent in self.agents
-            who = f"action of {agent!r}" + ("" if live else " (not live this step)")
-            val = float(as_actions(act, (1,), who, exact=True)[0])
-            if live:
-                out[agent] = val  # the core clips to the agent's bounds
-        return out
+        return agent_actions(actions, self.possible_agents, self.agents)
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:

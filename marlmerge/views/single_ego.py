@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from gymnasium import spaces
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.sim import TrafficCore
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import EGO_TERMS
@@ -28,6 +28,7 @@ class EgoWorlds:
         highway_policy: HighwayPolicy | None,
         seed: int | Sequence[int] | None = None,
     ):
+        require_ego(cfg, "the single-ego view")
         self.cfg = cfg
         self.b = num_worlds
         self.highway_policy = highway_policy

@@ -34,7 +34,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import (
     OUTCOME_COLLISION,
@@ -73,6 +73,7 @@ class BatchedMergeEnv(EnvBase):
         (`TrafficCore`)."""
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.cfg = resolve_config(config, **(overrides or {}))
+        require_ego(self.cfg, type(self).__name__)
         self.num_worlds = num_worlds
         self.core = TrafficCore(
             self.cfg,

@@ -1,0 +1,218 @@
+"""The merge as a whole: ramp flow (`ramp.flow_vph > 0`) measured as traffic engineers do.
+
+Ramp vehicles arrive as their own Poisson stream, queue at the ramp's entrance if the ramp is
+full, follow each other on the ramp and merge, each an agent driven by one shared policy (a rule
+or a learned ego policy of the paper's observation layout: `marlmerge.evaluation.registry`).
+
+    result = run_ramp_flow(cfg, "gap", hours=1.0, worlds=4, seed=0)
+    result.merged_vph, result.ramp_delay_s, result.mainline_speed_drop_mps
+
+What is measured (`RampFlowResult`), in a window that starts `skip_s` after the warm-up:
+
+- merged flow: ramp vehicles that pass the merge point x = 0, per hour (per world, then the
+  mean over worlds with a 95 % interval);
+- ramp travel time: from a vehicle's drawn arrival at the ramp start to x = 0, the entrance
+  wait included; ramp delay: that minus the time to drive the same distance at the speed limit,
+  so that both simulators of `marlmerge.validation.merge` are judged by the same yardstick;
+- the ramp's entrance queue (longest) and its mean entrance wait;
+- collisions of ramp vehicles before the merge point, per 1,000 merged vehicles;
+- the mainline's mean speed in the merge zone and upstream of the ramp start (the drop is the
+  merge's cost to the mainline), and the road's throughput at its downstream end.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from marlmerge.config import ScenarioConfig
+from marlmerge.sim.core import TrafficCore
+
+MAX_RAMP_AGENTS = 16
+"""Ramp vehicles per world that act each step (downstream first); the ramp rarely holds more, and
+any beyond drive by IDM behind their ramp leader."""
+UPSTREAM_WINDOW_M = 100.0
+"""The mainline's upstream speed is measured over this length, ending at the ramp start."""
+
+
+@dataclass(frozen=True)
+class RampFlowResult:
+    """What a ramp-flow run measured (means over worlds; `*_ci95`: 95 % intervals over worlds)."""
+
+    driver: str
+    ramp_demand_vph: float
+    mainline_demand_vph_per_lane: float
+    worlds: int
+    measured_s: float
+    """Simulated time per world in the measurement window."""
+    merged_vph: float
+    merged_vph_ci95: tuple[float, float]
+    ramp_entered_vph: float
+    ramp_travel_s: float
+    ramp_delay_s: float
+    ramp_delay_s_ci95: tuple[float, float]
+    ramp_wait_s: float
+    ramp_max_queue: int
+    ramp_collisions: int
+    ramp_collisions_per_1000: float
+    background_collisions: int
+    mainline_speed_merge_mps: float
+    mainline_speed_upstream_mps: float
+    mainline_speed_drop_mps: float
+    throughput_vph: float
+    """Vehicles leaving by the downstream end per hour, merged ramp vehicles included."""
+    wall_s: float = 0.0
+
+    def to_dict(self) -> dict[str, object]:
+        return asdict(self)
+
+
+def _interval(per_world: np.ndarray) -> tuple[float, float]:
+    """95 % t-interval of the mean over worlds (normal quantile: worlds >= 2)."""
+    n = per_world.size
+    mean = float(per_world.mean())
+    if n < 2:
+        return (mean, mean)
+    half = 1.96 * float(per_world.std(ddof=1)) / math.sqrt(n)
+    return (mean - half, mean + half)
+
+
+def ramp_commands(policy: object, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """[B, K] accelerations of the masked ramp agents from an ego policy (NaN elsewhere: IDM)."""
+    cmd = np.full(mask.shape, np.nan)
+    if mask.any():
+        x = torch.as_tensor(obs[mask], dtype=torch.float32)
+        with torch.no_grad():
+            cmd[mask] = np.asarray(policy(x), dtype=np.float64).reshape(-1)  # type: ignore[operator]
+    return cmd
+
+
+def check_ramp_scenario(cfg: ScenarioConfig, driver: str) -> None:
+    """Ramp flow needs `ramp.flow_vph > 0` and a policy of the paper's observation layout."""
+    if not cfg.ramp.flowing:
+        raise ValueError(
+            f"ramp flow needs ramp.flow_vph > 0 (got {cfg.ramp.flow_vph}): set it in the "
+            "scenario or with --ramp-flow"
+        )
+    if cfg.ego.observation != "paper":
+        raise ValueError(
+            f"policy {driver!r}: ramp agents see the paper's observation layout, the policy "
+            f"uses ego.observation = {cfg.ego.observation!r}"
+        )
+
+
+def run_ramp_flow(
+    cfg: ScenarioConfig,
+    driver: str = "gap",
+    hours: float = 1.0,
+    worlds: int = 4,
+    seed: int = 0,
+    skip_s: float = 300.0,
+) -> RampFlowResult:
+    """Every ramp vehicle driven by `driver` (a policy spec of `marlmerge evaluate`: `gap`,
+    `hold`, `idm`, a run folder or `policy.pt`) for `hours` of simulated time per world after
+    `skip_s` of settling, in `worlds` worlds seeded `seed`."""
+    import time
+
+    from marlmerge.evaluation.registry import policy_for_evaluation
+
+    if not hours > 0 or not skip_s >= 0:
+        raise ValueError(f"hours must be > 0 and skip_s >= 0, got hours={hours}, skip_s={skip_s}")
+    if isinstance(worlds, bool) or not isinstance(worlds, int) or worlds < 1:
+        raise ValueError(f"worlds must be an integer >= 1, got {worlds!r}")
+    policy, scenario = policy_for_evaluation(driver, cfg)
+    check_ramp_scenario(scenario, driver)
+    start = time.perf_counter()
+    core = TrafficCore(scenario, batch_size=worlds, seed=seed)
+    step_s = scenario.sim.dt_s * scenario.sim.action_repeat
+    _drive(core, policy, int(round(skip_s / step_s)), None)
+    before = _counters(core)
+    speeds = np.zeros(4)  # summed speed and samples: merge zone, upstream
+    n_steps = int(round(hours * 3600.0 / step_s))
+    _drive(core, policy, n_steps, speeds)
+    after = _counters(core)
+    result = _result(scenario, driver, worlds, n_steps * step_s, before, after, speeds)
+    return RampFlowResult(**{**asdict(result), "wall_s": time.perf_counter() - start})
+
+
+def _drive(core: TrafficCore, policy: object, n_steps: int, speeds: np.ndarray | None) -> None:
+    """`n_steps` control steps of every world, the ramp agents driven by `policy`; with
+    `speeds`, the mainline's speeds sampled after each step."""
+    nan = np.full(core.batch_size, np.nan)
+    road = core.cfg.road
+    upstream = (road.x_ramp_start_m - UPSTREAM_WINDOW_M, road.x_ramp_start_m)
+    for _ in range(n_steps):
+        roster, obs = core.ramp_agents(MAX_RAMP_AGENTS)
+        core.rollout(nan, roster=roster, roster_accel=ramp_commands(policy, obs, roster.mask))
+        if speeds is not None:
+            st = core.state
+            main = st.active & (st.lane >= 0)  # [B, N] on a highway lane
+            x, v = st.x_m, st.v_mps
+            for i, (lo, hi) in enumerate(((road.x_zone_start_m, 0.0), upstream)):
+                sel = main & (x >= lo) & (x < hi)
+                speeds[2 * i] += float(v[sel].sum())
+                speeds[2 * i + 1] += float(sel.sum())
+
+
+_COUNTERS = (
+    "ramp_entered",
+    "ramp_passed",
+    "ramp_collisions",
+    "background_collisions",
+    "exited",
+    "ramp_travel_s",
+    "ramp_wait_s",
+)
+
+
+def _counters(core: TrafficCore) -> dict[str, np.ndarray]:
+    st = core.state
+    out = {name: np.array(getattr(st, name), dtype=np.float64) for name in _COUNTERS}
+    out["ramp_max_queue"] = np.array(st.ramp_max_queue)
+    return out
+
+
+def _result(
+    cfg: ScenarioConfig,
+    driver: str,
+    worlds: int,
+    measured_s: float,
+    before: dict[str, np.ndarray],
+    after: dict[str, np.ndarray],
+    speeds: np.ndarray,
+) -> RampFlowResult:
+    d = {k: after[k] - before[k] for k in _COUNTERS}  # [B] each, in the window
+    per_hour = 3600.0 / measured_s
+    merged = d["ramp_passed"] * per_hour  # [B]
+    ramp_path_m = -cfg.road.x_ramp_start_m
+    free_s = ramp_path_m / cfg.road.speed_limit_mps
+    passed = np.maximum(d["ramp_passed"], 1.0)
+    delay = d["ramp_travel_s"] / passed - free_s  # [B]
+    total_passed = float(d["ramp_passed"].sum())
+    v_merge = speeds[0] / max(speeds[1], 1.0)
+    v_up = speeds[2] / max(speeds[3], 1.0)
+    return RampFlowResult(
+        driver=driver,
+        ramp_demand_vph=cfg.ramp.flow_vph,
+        mainline_demand_vph_per_lane=cfg.traffic.flow_vph_per_lane,
+        worlds=worlds,
+        measured_s=measured_s,
+        merged_vph=float(merged.mean()),
+        merged_vph_ci95=_interval(merged),
+        ramp_entered_vph=float(d["ramp_entered"].mean() * per_hour),
+        ramp_travel_s=float(d["ramp_travel_s"].sum() / max(total_passed, 1.0)),
+        ramp_delay_s=float(d["ramp_travel_s"].sum() / max(total_passed, 1.0) - free_s),
+        ramp_delay_s_ci95=_interval(delay),
+        ramp_wait_s=float(d["ramp_wait_s"].sum() / max(float(d["ramp_entered"].sum()), 1.0)),
+        ramp_max_queue=int(after["ramp_max_queue"].max()),
+        ramp_collisions=int(d["ramp_collisions"].sum()),
+        ramp_collisions_per_1000=1000.0 * float(d["ramp_collisions"].sum()) / max(total_passed, 1),
+        background_collisions=int(d["background_collisions"].sum()),
+        mainline_speed_merge_mps=float(v_merge),
+        mainline_speed_upstream_mps=float(v_up),
+        mainline_speed_drop_mps=float(v_up - v_merge),
+        throughput_vph=float(d["exited"].mean() * per_hour),
+    )
