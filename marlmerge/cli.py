@@ -356,9 +356,10 @@ def rampflow_cmd(args: argparse.Namespace) -> int:
     if args.scenario is not None:
         base = resolve_config(args.scenario)
     else:  # the policy's own scenario (a learned one's training scenario; rules: the default)
+        from marlmerge.evaluation.ramp_flow import parse_mix
         from marlmerge.evaluation.registry import policy_for_evaluation
 
-        base = policy_for_evaluation(args.policy, None)[1]
+        base = policy_for_evaluation(parse_mix(args.policy)[0][0], None)[1]
     if args.ramp_flow is None and not base.ramp.flowing:
         raise ValueError(
             f"--ramp-flow: scenario {base.name!r} has no ramp flow (ramp.flow_vph = 0); "
@@ -661,7 +662,10 @@ def build_parser() -> argparse.ArgumentParser:
     es.set_defaults(func=estimate_cmd)
 
     rf = sub.add_parser("rampflow", help="ramp flow: many merging vehicles, the merge measured")
-    rf.add_argument("policy", help="drives every ramp vehicle: hold, idm, gap, or a run folder")
+    rf.add_argument(
+        "policy",
+        help="drives every ramp vehicle: hold, idm, gap, a run folder; or a mix, gap=0.5,RUN=0.5",
+    )
     rf.add_argument(
         "--scenario", default=None, help="the traffic (default: the policy's own; rules: default)"
     )

@@ -284,3 +284,18 @@ def test_a_version_2_state_still_loads():
     v2["arrays"]["wi"] = v2["arrays"]["wi"][:, :-1]
     with pytest.raises(ValueError, match="array 'wi' has shape"):
         other.load_state_dict(v2)
+
+
+def test_a_mix_of_scripted_and_learned_merging_vehicles():
+    """`SPEC=SHARE,...`: each ramp vehicle draws its driver once; a mix lies between its parts."""
+    runs = {
+        d: run_ramp_flow(FLOW, d, hours=0.1, worlds=2, seed=3, skip_s=60)
+        for d in ("gap", "idm", "gap=0.5,idm=0.5")
+    }
+    coll = {d: r.ramp_collisions for d, r in runs.items()}
+    assert coll["gap"] < coll["gap=0.5,idm=0.5"] < coll["idm"]
+    again = run_ramp_flow(FLOW, "gap=0.5,idm=0.5", hours=0.1, worlds=2, seed=3, skip_s=60)
+    assert again.ramp_collisions == coll["gap=0.5,idm=0.5"]
+    for bad, match in (("gap=0.5,idm=0.4", "sum to 0.9"), ("gap=2", "not SPEC=SHARE")):
+        with pytest.raises(ValueError, match=match):
+            run_ramp_flow(FLOW, bad, hours=0.1)

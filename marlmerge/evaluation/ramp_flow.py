@@ -30,6 +30,7 @@ import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.sim.core import TrafficCore
+from marlmerge.sim.state import Roster
 
 MAX_RAMP_AGENTS = 16
 """Ramp vehicles per world that act each step (downstream first); the ramp rarely holds more, and
@@ -104,6 +105,54 @@ def check_ramp_scenario(cfg: ScenarioConfig, driver: str) -> None:
         )
 
 
+def parse_mix(driver: str) -> list[tuple[str, float]]:
+    """`driver` as (policy spec, share) pairs: one spec (share 1), or a mix of learned and
+    scripted merging vehicles, `SPEC=SHARE,SPEC=SHARE,...` with shares summing to 1."""
+    if "=" not in driver:
+        return [(driver, 1.0)]
+    mix = []
+    for part in driver.split(","):
+        spec, _, share = part.rpartition("=")
+        try:
+            value = float(share)
+        except ValueError:
+            value = float("nan")
+        if not spec or not 0.0 < value <= 1.0:
+            raise ValueError(f"mix {driver!r}: {part!r} is not SPEC=SHARE with 0 < SHARE <= 1")
+        mix.append((spec, value))
+    if abs(sum(v for _, v in mix) - 1.0) > 1e-6:
+        raise ValueError(f"mix {driver!r}: the shares sum to {sum(v for _, v in mix):g}, not 1")
+    return mix
+
+
+class RampDrivers:
+    """The policies of a ramp-flow run and which one drives each ramp vehicle: with a mix, each
+    vehicle draws its policy once, when first seen, from a generator per world seeded
+    `(seed, world)` (so the same vehicles get the same policies on every run)."""
+
+    def __init__(self, policies: list[object], shares: list[float], worlds: int, seed: int):
+        self.policies, self.cdf = policies, np.cumsum(shares)
+        self.rngs = [np.random.default_rng([seed, b]) for b in range(worlds)]
+        self.chosen: list[dict[int, int]] = [{} for _ in range(worlds)]
+
+    def commands(self, roster: Roster, obs: np.ndarray) -> np.ndarray:
+        """[B, K] commands of the roster's agents (NaN where masked)."""
+        if len(self.policies) == 1:
+            return ramp_commands(self.policies[0], obs, roster.mask)
+        which = np.full(roster.mask.shape, -1)
+        for b, j in zip(*np.nonzero(roster.mask), strict=True):
+            vid = int(roster.ids[b, j])
+            if vid not in self.chosen[b]:
+                pick = np.searchsorted(self.cdf, self.rngs[b].random(), side="right")
+                self.chosen[b][vid] = int(min(pick, len(self.policies) - 1))
+            which[b, j] = self.chosen[b][vid]
+        cmd = np.full(roster.mask.shape, np.nan)
+        for i, policy in enumerate(self.policies):
+            mine = which == i
+            cmd[mine] = ramp_commands(policy, obs, mine)[mine]
+        return cmd
+
+
 def run_ramp_flow(
     cfg: ScenarioConfig,
     driver: str = "gap",
@@ -113,8 +162,9 @@ def run_ramp_flow(
     skip_s: float = 300.0,
 ) -> RampFlowResult:
     """Every ramp vehicle driven by `driver` (a policy spec of `marlmerge evaluate`: `gap`,
-    `hold`, `idm`, a run folder or `policy.pt`) for `hours` of simulated time per world after
-    `skip_s` of settling, in `worlds` worlds seeded `seed`."""
+    `hold`, `idm`, a run folder or `policy.pt`; or a mix `SPEC=SHARE,...`, `parse_mix`) for
+    `hours` of simulated time per world after `skip_s` of settling, in `worlds` worlds seeded
+    `seed`."""
     import time
 
     from marlmerge.evaluation.registry import policy_for_evaluation
@@ -123,30 +173,37 @@ def run_ramp_flow(
         raise ValueError(f"hours must be > 0 and skip_s >= 0, got hours={hours}, skip_s={skip_s}")
     if isinstance(worlds, bool) or not isinstance(worlds, int) or worlds < 1:
         raise ValueError(f"worlds must be an integer >= 1, got {worlds!r}")
-    policy, scenario = policy_for_evaluation(driver, cfg)
-    check_ramp_scenario(scenario, driver)
+    mix = parse_mix(driver)
+    policies = []
+    for spec, _ in mix:
+        policy, scenario = policy_for_evaluation(spec, cfg)
+        check_ramp_scenario(scenario, spec)
+        policies.append(policy)
+    drivers = RampDrivers(policies, [share for _, share in mix], worlds, seed)
     start = time.perf_counter()
-    core = TrafficCore(scenario, batch_size=worlds, seed=seed)
-    step_s = scenario.sim.dt_s * scenario.sim.action_repeat
-    _drive(core, policy, int(round(skip_s / step_s)), None)
+    core = TrafficCore(cfg, batch_size=worlds, seed=seed)
+    step_s = cfg.sim.dt_s * cfg.sim.action_repeat
+    _drive(core, drivers, int(round(skip_s / step_s)), None)
     before = _counters(core)
     speeds = np.zeros(4)  # summed speed and samples: merge zone, upstream
     n_steps = int(round(hours * 3600.0 / step_s))
-    _drive(core, policy, n_steps, speeds)
+    _drive(core, drivers, n_steps, speeds)
     after = _counters(core)
-    result = _result(scenario, driver, worlds, n_steps * step_s, before, after, speeds)
+    result = _result(cfg, driver, worlds, n_steps * step_s, before, after, speeds)
     return RampFlowResult(**{**asdict(result), "wall_s": time.perf_counter() - start})
 
 
-def _drive(core: TrafficCore, policy: object, n_steps: int, speeds: np.ndarray | None) -> None:
-    """`n_steps` control steps of every world, the ramp agents driven by `policy`; with
+def _drive(
+    core: TrafficCore, drivers: RampDrivers, n_steps: int, speeds: np.ndarray | None
+) -> None:
+    """`n_steps` control steps of every world, the ramp agents driven by `drivers`; with
     `speeds`, the mainline's speeds sampled after each step."""
     nan = np.full(core.batch_size, np.nan)
     road = core.cfg.road
     upstream = (road.x_ramp_start_m - UPSTREAM_WINDOW_M, road.x_ramp_start_m)
     for _ in range(n_steps):
         roster, obs = core.ramp_agents(MAX_RAMP_AGENTS)
-        core.rollout(nan, roster=roster, roster_accel=ramp_commands(policy, obs, roster.mask))
+        core.rollout(nan, roster=roster, roster_accel=drivers.commands(roster, obs))
         if speeds is not None:
             st = core.state
             main = st.active & (st.lane >= 0)  # [B, N] on a highway lane
