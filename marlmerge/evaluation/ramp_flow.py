@@ -2,7 +2,10 @@
 
 Ramp vehicles arrive as their own Poisson stream, queue at the ramp's entrance if the ramp is
 full, follow each other on the ramp and merge, each an agent driven by one shared policy (a rule
-or a learned ego policy of the paper's observation layout: `marlmerge.evaluation.registry`).
+or a learned ego policy of the paper's observation layout: `marlmerge.evaluation.registry`)
+while it is on the ramp; once it has joined the right lane it follows by IDM every simulator
+step, as a mainline driver (the views and training keep it an agent until its merge ends, as the
+ego: `docs/ramp-flow.md` says why they differ).
 
     result = run_ramp_flow(cfg, "gap", hours=1.0, worlds=4, seed=0)
     result.merged_vph, result.ramp_delay_s, result.mainline_speed_drop_mps
