@@ -286,6 +286,7 @@ def test_a_version_2_state_still_loads():
         other.load_state_dict(v2)
 
 
+@pytest.mark.slow
 def test_a_mix_of_scripted_and_learned_merging_vehicles():
     """`SPEC=SHARE,...`: each ramp vehicle draws its driver once; a mix lies between its parts."""
     runs = {
