@@ -94,8 +94,9 @@ def ramp_commands(policy: object, obs: np.ndarray, mask: np.ndarray) -> np.ndarr
     return cmd
 
 
-def check_ramp_scenario(cfg: ScenarioConfig, driver: str) -> None:
-    """Ramp flow needs `ramp.flow_vph > 0` and a policy of the paper's observation layout."""
+def check_ramp_scenario(cfg: ScenarioConfig, who: str) -> None:
+    """Ramp flow needs `ramp.flow_vph > 0`, and its agents see the paper's observation layout;
+    `who` ("policy 'gap'", "scenario 'ramp_flow'") names what is checked in the errors."""
     if not cfg.ramp.flowing:
         raise ValueError(
             f"ramp flow needs ramp.flow_vph > 0 (got {cfg.ramp.flow_vph}): set it in the "
@@ -103,8 +104,8 @@ def check_ramp_scenario(cfg: ScenarioConfig, driver: str) -> None:
         )
     if cfg.ego.observation != "paper":
         raise ValueError(
-            f"policy {driver!r}: ramp agents see the paper's observation layout, the policy "
-            f"uses ego.observation = {cfg.ego.observation!r}"
+            f"{who}: ramp agents see the paper's observation layout, not ego.observation = "
+            f"{cfg.ego.observation!r}"
         )
 
 
@@ -180,7 +181,7 @@ def run_ramp_flow(
     policies = []
     for spec, _ in mix:
         policy, scenario = policy_for_evaluation(spec, cfg)
-        check_ramp_scenario(scenario, spec)
+        check_ramp_scenario(scenario, f"policy {spec!r}")
         policies.append(policy)
     drivers = RampDrivers(policies, [share for _, share in mix], worlds, seed)
     start = time.perf_counter()

@@ -120,10 +120,10 @@ from marlmerge.sim.layout import (
 from marlmerge.sim.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
 from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, sensed_output
 from marlmerge.sim.step import (
-    agent_gaps,
     deactivate,
     ego_gaps,
     free_slot,
+    gap_vehicles,
     neighbours,
     substep,
 )
@@ -175,7 +175,7 @@ def _roster_step(
             continue
         same = vi[b, VI_ID, s] == roster[RO_ID, b, j]
         if flowing and same:  # a ramp agent: the ego's terms, for its own merge
-            _, _, d_f, _, v_b, d_b = agent_gaps(S, b, p, s)
+            _, _, _, _, d_f, _, v_b, d_b = gap_vehicles(S, b, p, s)
             add_ego_terms(
                 p, hw_terms[:, j], b, vf[b, VF_A, s], vf[b, VF_X, s], vf[b, VF_V, s], d_f, d_b,
                 v_b, (vi[b, VI_FLAGS, s] & EV_HIT) != 0, 0.0,
@@ -638,7 +638,7 @@ def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> N
 @kernel
 def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
     """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, 7]: the paper's
-    seven ego features with perfect sensing, its gap vehicles as `agent_gaps` finds them (zeros
+    seven ego features with perfect sensing, its gap vehicles as `gap_vehicles` finds them (zeros
     where masked)."""
     vf, vi, wf, wi, lanes, sched = S
     for b in range(vf.shape[0]):
@@ -650,7 +650,7 @@ def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -
                 for c in range(obs.shape[2]):
                     obs[b, j, c] = 0.0
                 continue
-            x_f, v_f, _, x_b, v_b, _ = agent_gaps(S, b, pb, s)
+            _, _, x_f, v_f, _, x_b, v_b, _ = gap_vehicles(S, b, pb, s)
             obs[b, j, 0], obs[b, j, 1] = vf[b, VF_V, s] / ss, vf[b, VF_X, s] / ps
             obs[b, j, 2], obs[b, j, 3] = v_f / ss, x_f / ps
             obs[b, j, 4], obs[b, j, 5] = v_b / ss, x_b / ps

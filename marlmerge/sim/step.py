@@ -871,58 +871,43 @@ def ego_episode(S: tuple, b: int, p: np.ndarray, running: bool, ego_hit: bool) -
 
 
 @kernel(inline=True)
-def ego_gaps(S: tuple, b: int, p: np.ndarray) -> None:
-    """The ego's gap-front and gap-back vehicles: its right-lane neighbours (projected onto the
-    lane while it is on the ramp), within the sensing range. A missing one is a virtual vehicle
-    at the edge of the range driving at the speed limit."""
+def gap_vehicles(S: tuple, b: int, p: np.ndarray, s: int) -> tuple:
+    """Slot `s`'s gap-front and gap-back vehicles: its right-lane neighbours (its leader and
+    follower once it is in the right lane, else those of its projection onto the lane), within
+    the sensing range. A missing one is a virtual vehicle at the edge of the range driving at the
+    speed limit. Returns (front, back, x_front, v_front, d_front, x_back, v_back, d_back): the
+    slots (-1: virtual), positions, speeds and bumper gaps."""
     vf, vi, wf, wi, lanes, sched = S
-    x_e = vf[b, VF_X, EGO]
-    if vi[b, VI_LANE, EGO] == RIGHT:
-        front, back = vi[b, VI_LEADER, EGO], vi[b, VI_FOLLOWER, EGO]
+    x = vf[b, VF_X, s]
+    if vi[b, VI_LANE, s] == RIGHT:
+        front, back = vi[b, VI_LEADER, s], vi[b, VI_FOLLOWER, s]
     else:
-        front, back = ll.neighbours_at(S, b, RIGHT, x_e)
+        front, back = ll.neighbours_at(S, b, RIGHT, x)
     rng, length, v_limit = p[P_SENSING], p[P_LEN], p[P_V_LIMIT]
-    if front >= 0 and vf[b, VF_X, front] - x_e > rng:
+    if front >= 0 and vf[b, VF_X, front] - x > rng:
         front = -1
-    if back >= 0 and x_e - vf[b, VF_X, back] > rng:
+    if back >= 0 and x - vf[b, VF_X, back] > rng:
         back = -1
-    wi[b, WI_FRONT], wi[b, WI_BACK] = front, back
+    x_f, v_f, d_f = x + rng, v_limit, rng
     if front >= 0:
-        wf[b, WF_XF] = vf[b, VF_X, front]
-        wf[b, WF_DF] = vf[b, VF_X, front] - x_e - length
-        wf[b, WF_VF] = vf[b, VF_V, front]
-    else:
-        wf[b, WF_XF], wf[b, WF_DF], wf[b, WF_VF] = x_e + rng, rng, v_limit
+        x_f, v_f = vf[b, VF_X, front], vf[b, VF_V, front]
+        d_f = vf[b, VF_X, front] - x - length
+    x_b, v_b, d_b = x - rng, v_limit, rng
     if back >= 0:
-        wf[b, WF_XB] = vf[b, VF_X, back]
-        wf[b, WF_DB] = x_e - vf[b, VF_X, back] - length
-        wf[b, WF_VB] = vf[b, VF_V, back]
-    else:
-        wf[b, WF_XB], wf[b, WF_DB], wf[b, WF_VB] = x_e - rng, rng, v_limit
+        x_b, v_b = vf[b, VF_X, back], vf[b, VF_V, back]
+        d_b = x - vf[b, VF_X, back] - length
+    return front, back, x_f, v_f, d_f, x_b, v_b, d_b
 
 
 @kernel(inline=True)
-def agent_gaps(S: tuple, b: int, p: np.ndarray, s: int) -> tuple:
-    """Ramp flow: slot `s`'s gap vehicles as the ego's (`ego_gaps`): its right-lane neighbours
-    (projected while on the ramp), within the sensing range, a missing one virtual at the
-    range's edge at the speed limit. Returns (x_front, v_front, d_front, x_back, v_back,
-    d_back): positions, speeds and bumper gaps."""
+def ego_gaps(S: tuple, b: int, p: np.ndarray) -> None:
+    """The ego's gap-front and gap-back vehicles (`gap_vehicles`) into `WI_FRONT`/`WI_BACK` and
+    the `WF_XF` ... `WF_VB` rows."""
     vf, vi, wf, wi, lanes, sched = S
-    x = vf[b, VF_X, s]
-    if vi[b, VI_LANE, s] == RAMP:
-        front, back = ll.neighbours_at(S, b, RIGHT, x)
-    else:
-        front, back = vi[b, VI_LEADER, s], vi[b, VI_FOLLOWER, s]
-    rng, length, v_limit = p[P_SENSING], p[P_LEN], p[P_V_LIMIT]
-    x_f, v_f, d_f = x + rng, v_limit, rng
-    if front >= 0 and vf[b, VF_X, front] - x <= rng:
-        x_f, v_f = vf[b, VF_X, front], vf[b, VF_V, front]
-        d_f = x_f - x - length
-    x_b, v_b, d_b = x - rng, v_limit, rng
-    if back >= 0 and x - vf[b, VF_X, back] <= rng:
-        x_b, v_b = vf[b, VF_X, back], vf[b, VF_V, back]
-        d_b = x - x_b - length
-    return x_f, v_f, d_f, x_b, v_b, d_b
+    front, back, x_f, v_f, d_f, x_b, v_b, d_b = gap_vehicles(S, b, p, EGO)
+    wi[b, WI_FRONT], wi[b, WI_BACK] = front, back
+    wf[b, WF_XF], wf[b, WF_DF], wf[b, WF_VF] = x_f, d_f, v_f
+    wf[b, WF_XB], wf[b, WF_DB], wf[b, WF_VB] = x_b, d_b, v_b
 
 
 @kernel

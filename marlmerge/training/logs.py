@@ -70,14 +70,40 @@ class CsvLog:
         self.fh.close()
 
 
-class EgoTracker:
+class _EpisodeTracker:
+    """Sums the reward terms of running episodes (`sums` [..., terms], `steps` [...] indexed by
+    world, or by world and agent column) and writes an `egos.csv` row when one ends."""
+
+    def __init__(self, shape: tuple[int, ...], step_time_s: float):
+        self.sums = np.zeros((*shape, len(EGO_TERMS)))
+        self.steps = np.zeros(shape, dtype=np.int64)  # env steps of each running episode
+        self.egos = 0
+        self.step_time_s = step_time_s
+
+    def _end(self, at: tuple[int, ...], sim_step: int, outcome: int, log: CsvLog) -> dict:
+        """The row of the episode at index `at` (world first), which ended; its sums restart."""
+        sums = self.sums[at]
+        row = {
+            "ego": self.egos,
+            "sim_step": sim_step,
+            "world": int(at[0]),
+            "outcome": OUTCOME_NAMES[int(outcome)],
+            "time_s": round(float(self.steps[at] * self.step_time_s), 3),
+            "total_reward": float(total_reward(sums)),
+            **{name: float(sums[i]) for i, name in enumerate(EGO_TERMS)},
+        }
+        log.write([row[f] for f in EGO_FIELDS])
+        self.egos += 1
+        self.sums[at] = 0.0
+        self.steps[at] = 0
+        return row
+
+
+class EgoTracker(_EpisodeTracker):
     """Sums each world's reward terms over its current ego's episode; emits a row when it ends."""
 
     def __init__(self, num_worlds: int, step_time_s: float):
-        self.sums = np.zeros((num_worlds, len(EGO_TERMS)))  # [B, terms]
-        self.steps = np.zeros(num_worlds, dtype=np.int64)  # env steps of the current ego
-        self.egos = 0
-        self.step_time_s = step_time_s
+        super().__init__((num_worlds,), step_time_s)
 
     def update(self, batch: TensorDictBase, sim_step_end: int, k: int, log: CsvLog) -> list[dict]:
         """batch: collector output [B, T]. Returns the finished egos' rows, in time order."""
@@ -93,32 +119,16 @@ class EgoTracker:
             self.steps += 1
             sim_step = sim_step_end - (t_len - 1 - t) * b * k
             for w in np.flatnonzero(done[:, t]):
-                row = {
-                    "ego": self.egos,
-                    "sim_step": sim_step,
-                    "world": int(w),
-                    "outcome": OUTCOME_NAMES[int(outcome[w, t])],
-                    "time_s": round(float(self.steps[w] * self.step_time_s), 3),
-                    "total_reward": float(total_reward(self.sums[w])),
-                    **{name: float(self.sums[w, i]) for i, name in enumerate(EGO_TERMS)},
-                }
-                log.write([row[f] for f in EGO_FIELDS])
-                finished.append(row)
-                self.egos += 1
-                self.sums[w] = 0.0
-                self.steps[w] = 0
+                finished.append(self._end((w,), sim_step, outcome[w, t], log))
         return finished
 
 
-class RampTracker:
+class RampTracker(_EpisodeTracker):
     """Ramp flow: sums each ramp agent's reward terms over its own merge; emits an `egos.csv` row
     (the merging vehicle as the ego) when it ends. Columns of the `"ramp"` group [B, K]."""
 
     def __init__(self, num_worlds: int, n_agents: int, step_time_s: float):
-        self.sums = np.zeros((num_worlds, n_agents, len(EGO_TERMS)))  # [B, K, terms]
-        self.steps = np.zeros((num_worlds, n_agents), dtype=np.int64)  # env steps of its merge
-        self.egos = 0
-        self.step_time_s = step_time_s
+        super().__init__((num_worlds, n_agents), step_time_s)
 
     def update(self, batch: TensorDictBase, sim_step_end: int, k: int, log: CsvLog) -> list[dict]:
         """batch: collector output [B, T]. Returns the ended merges' rows, in time order."""
@@ -134,20 +144,7 @@ class RampTracker:
             self.steps += acting[:, t]
             sim_step = sim_step_end - (t_len - 1 - t) * b * k
             for w, j in zip(*np.nonzero(outcome[:, t]), strict=True):
-                row = {
-                    "ego": self.egos,
-                    "sim_step": sim_step,
-                    "world": int(w),
-                    "outcome": OUTCOME_NAMES[int(outcome[w, t, j])],
-                    "time_s": round(float(self.steps[w, j] * self.step_time_s), 3),
-                    "total_reward": float(total_reward(self.sums[w, j])),
-                    **{name: float(self.sums[w, j, i]) for i, name in enumerate(EGO_TERMS)},
-                }
-                log.write([row[f] for f in EGO_FIELDS])
-                finished.append(row)
-                self.egos += 1
-                self.sums[w, j] = 0.0
-                self.steps[w, j] = 0
+                finished.append(self._end((w, j), sim_step, outcome[w, t, j], log))
         return finished
 
 

@@ -15,6 +15,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import TrainConfig
+from marlmerge.evaluation.ramp_flow import check_ramp_scenario
 from marlmerge.training.loop import LearningGroup
 from marlmerge.views.ramp_flow_torchrl import GROUP, RampFlowTorchEnv
 
@@ -29,11 +30,7 @@ def check_ramp_training(cfg: TrainConfig, scen: ScenarioConfig) -> None:
             f"scenario {cfg.scenario!r} runs ramp flow (ramp.flow_vph = {scen.ramp.flow_vph}); "
             "[levels] and [select] need the one ego's episodes: leave them out"
         )
-    if scen.ego.observation != "paper":
-        raise ValueError(
-            f"scenario {cfg.scenario!r} runs ramp flow: its agents see the paper's observation "
-            f"layout, not ego.observation = {scen.ego.observation!r}"
-        )
+    check_ramp_scenario(scen, f"scenario {cfg.scenario!r}")
 
 
 def make_ramp_env(cfg: TrainConfig, scen: ScenarioConfig) -> RampFlowTorchEnv:

@@ -13,6 +13,8 @@ of the road upstream of the merge point.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -146,20 +148,35 @@ def flow_config(cfg: ScenarioConfig, flow_vphpl: float) -> ScenarioConfig:
     return cfg.replace(**{"traffic.flow_vph_per_lane": float(flow_vphpl)})
 
 
+def _world_streams(cfg: ScenarioConfig, seed: int | np.random.SeedSequence) -> Streams:
+    """The generators of one world seeded `seed` (with `[sample]`, in the traffic it draws at its
+    first reset)."""
+    streams = Streams(cfg, 1)
+    streams.seed(np.array([0]), world_seed_sequences(1, [seed], np.array([0])))
+    if cfg.sample.active:
+        streams.cfgs[0] = draw_world_scenario(cfg, streams.gens[0][SCENARIO_STREAM])
+    return streams
+
+
+def _drawn_until(draw: Callable[[float], np.ndarray], duration_s: float) -> np.ndarray:
+    """The chunks `draw(t_last)` gives, one after the other, up to `duration_s`: [n, 4] of
+    (time s, speed m/s, desired speed m/s, time headway s)."""
+    chunks, t_last = [], 0.0
+    while t_last <= duration_s:
+        c = draw(t_last)
+        chunks.append(c)
+        t_last = float(c[-1, SC_T])
+    a = np.concatenate(chunks)
+    return a[a[:, SC_T] <= duration_s][:, [SC_T, SC_V, SC_V0, SC_T_HW]]
+
+
 def drawn_ramp_arrivals(
     cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float
 ) -> np.ndarray:
     """Ramp flow: the ramp vehicles a world seeded `seed` draws up to `duration_s`, [n, 4] of
     (time s, start speed m/s, desired speed m/s, time headway s)."""
-    streams = Streams(cfg, 1)
-    streams.seed(np.array([0]), world_seed_sequences(1, [seed], np.array([0])))
-    chunks, t_last = [], 0.0
-    while t_last <= duration_s:
-        c = streams.ramp_arrivals(0, t_last)
-        chunks.append(c)
-        t_last = float(c[-1, SC_T])
-    a = np.concatenate(chunks)
-    return a[a[:, SC_T] <= duration_s][:, [SC_T, SC_V, SC_V0, SC_T_HW]]
+    streams = _world_streams(cfg, seed)
+    return _drawn_until(functools.partial(streams.ramp_arrivals, 0), duration_s)
 
 
 def drawn_arrivals(
@@ -168,21 +185,10 @@ def drawn_arrivals(
     """The arrivals a world seeded `seed` draws for each lane up to `duration_s` (with `[sample]`,
     in the traffic it draws first): per lane an array [n, 4] of (time s, entry speed m/s, desired
     speed m/s, time headway s)."""
-    streams = Streams(cfg, 1)
-    streams.seed(np.array([0]), world_seed_sequences(1, [seed], np.array([0])))
-    if cfg.sample.active:  # the traffic the world draws at its first reset
-        streams.cfgs[0] = draw_world_scenario(cfg, streams.gens[0][SCENARIO_STREAM])
-    out = []
-    for lane in range(2):
-        chunks, t_last = [], 0.0
-        while t_last <= duration_s:
-            c = streams.arrivals(0, lane, t_last)
-            chunks.append(c)
-            t_last = float(c[-1, SC_T])
-        a = np.concatenate(chunks)
-        a = a[a[:, SC_T] <= duration_s]
-        out.append(a[:, [SC_T, SC_V, SC_V0, SC_T_HW]])
-    return out
+    streams = _world_streams(cfg, seed)
+    return [
+        _drawn_until(functools.partial(streams.arrivals, 0, lane), duration_s) for lane in range(2)
+    ]
 
 
 def run_flow(cfg: ScenarioConfig, seed: int, duration_s: float) -> FlowSamples:

@@ -139,21 +139,45 @@ def run_car_following(case: CarFollowingCase, cfg: ScenarioConfig) -> Trajectori
     return Trajectories(np.arange(n + 1) * dt, *rows.T)
 
 
-def _mainline_routes(cfg: ScenarioConfig, seed: int, duration_s: float, route: str) -> list[str]:
-    """vTypes and vehicles of the arrivals marlmerge draws for a world seeded `seed`: each
-    departs at its drawn time in its lane, at its drawn speed (`departSpeed`: SUMO delays the
-    insertion until that speed is safe), with its drawn desired speed and headway."""
+def _drawn_vehicles(
+    cfg: ScenarioConfig, rows: list[tuple], vehicle: str, vtype: str, route: str
+) -> tuple[list[str], list[tuple[float, str]]]:
+    """vTypes and (departure s, vehicle line) of drawn vehicles `rows` (time, lane, speed,
+    desired speed, headway), named `{vehicle}{i}` of type `{vtype}{i}`: each departs at its
+    drawn time in its lane, at its drawn speed (`departSpeed`: SUMO delays the insertion until
+    that speed is safe), with its drawn desired speed and headway."""
     v_limit = cfg.road.speed_limit_mps
-    arrivals = drawn_arrivals(cfg, seed, duration_s)
-    rows = sorted((t, lane, v, v0, hw) for lane, a in enumerate(arrivals) for t, v, v0, hw in a)
-    lines = [_vtype(cfg, f"t{i}", v0 / v_limit, hw) for i, (_, _, _, v0, hw) in enumerate(rows)]
+    types = [_vtype(cfg, f"{vtype}{i}", v0 / v_limit, hw) for i, (*_, v0, hw) in enumerate(rows)]
+    vehicles = []
     for i, (t, lane, v, v0, _) in enumerate(rows):
         v = float(min(v, v0 * (1 - 1e-12)))  # <= v0 also after rounding
-        lines.append(
-            f'<vehicle id="v{i}" type="t{i}" route="{route}" depart="{t:.1f}" '
-            f'departLane="{lane}" departPos="0" departSpeed="{v!r}"/>'
+        depart = f"{t:.1f}"
+        vehicles.append(
+            (
+                float(depart),
+                f'<vehicle id="{vehicle}{i}" type="{vtype}{i}" route="{route}" depart="{depart}" '
+                f'departLane="{lane}" departPos="0" departSpeed="{v!r}"/>',
+            )
         )
-    return lines
+    return types, vehicles
+
+
+def _mainline_vehicles(
+    cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float, route: str
+) -> tuple[list[str], list[tuple[float, str]]]:
+    """`_drawn_vehicles` of the arrivals marlmerge draws for a world seeded `seed`, in time
+    order."""
+    arrivals = drawn_arrivals(cfg, seed, duration_s)
+    rows = sorted((t, lane, v, v0, hw) for lane, a in enumerate(arrivals) for t, v, v0, hw in a)
+    return _drawn_vehicles(cfg, rows, "v", "t", route)
+
+
+def _mainline_routes(
+    cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float, route: str
+) -> list[str]:
+    """vTypes and vehicles of the arrivals marlmerge draws for a world seeded `seed`."""
+    types, vehicles = _mainline_vehicles(cfg, seed, duration_s, route)
+    return types + [line for _, line in vehicles]
 
 
 def run_flow(cfg: ScenarioConfig, seed: int, duration_s: float) -> FlowSamples:
@@ -292,26 +316,13 @@ class RampRoad:
 def _ramp_routes(
     cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float
 ) -> list[str]:
-    """The mainline's drawn arrivals (`_mainline_routes`) and the ramp's (`drawn_ramp_arrivals`,
+    """The mainline's drawn arrivals (`_mainline_vehicles`) and the ramp's (`drawn_ramp_arrivals`,
     vehicles `r{i}` on route `ramp`) for a world seeded `seed`, vehicles sorted by departure."""
-    v_limit = cfg.road.speed_limit_mps
-    main = _mainline_routes(cfg, seed, duration_s, "main")
-    types = [line for line in main if line.startswith("<vType")]
-    vehicles = [
-        (float(line.split('depart="')[1].split('"')[0]), line) for line in main[len(types) :]
-    ]
-    for i, (t, v, v0, hw) in enumerate(drawn_ramp_arrivals(cfg, seed, duration_s)):
-        types.append(_vtype(cfg, f"rt{i}", v0 / v_limit, hw))
-        v = float(min(v, v0 * (1 - 1e-12)))
-        vehicles.append(
-            (
-                round(float(t), 1),
-                f'<vehicle id="r{i}" type="rt{i}" route="ramp" depart="{t:.1f}" departLane="0" '
-                f'departPos="0" departSpeed="{v!r}"/>',
-            )
-        )
-    vehicles.sort(key=lambda tv: tv[0])
-    return types + [line for _, line in vehicles]
+    types, vehicles = _mainline_vehicles(cfg, seed, duration_s, "main")
+    ramp = [(t, 0, v, v0, hw) for t, v, v0, hw in drawn_ramp_arrivals(cfg, seed, duration_s)]
+    ramp_types, ramp_vehicles = _drawn_vehicles(cfg, ramp, "r", "rt", "ramp")
+    ordered = sorted(vehicles + ramp_vehicles, key=lambda tv: tv[0])  # stable: mainline first
+    return types + ramp_types + [line for _, line in ordered]
 
 
 def run_merge(

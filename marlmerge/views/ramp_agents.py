@@ -65,8 +65,9 @@ class RampAgentTable:
         found = match.any(axis=2)
         return np.where(found & self.live, match.argmax(axis=2), -1)
 
-    def roster(self) -> Roster:
-        return self.core.make_roster(self.slots())
+    def roster(self, slots: np.ndarray | None = None) -> Roster:
+        """The agents as a `Roster` (`slots`: `slots()` if already at hand)."""
+        return self.core.make_roster(self.slots() if slots is None else slots)
 
     def assign(self) -> np.ndarray:
         """Give the ramp vehicles that entered since the last call free columns (upstream last).
@@ -88,11 +89,12 @@ class RampAgentTable:
                 new[b, j] = True
         return new
 
-    def outcomes(self) -> np.ndarray:
+    def outcomes(self, slots: np.ndarray | None = None) -> np.ndarray:
         """[B, K] each live agent's outcome after a step (OUTCOME_NONE: still running; free
-        columns too). Counts the stall clocks: call once per env step."""
+        columns too). Counts the stall clocks: call once per env step (`slots`: `slots()` after
+        the step, if already at hand)."""
         core, st, e = self.core, self.core.state, self.core.cfg.ego
-        slots = self.slots()
+        slots = self.slots() if slots is None else slots
         b_idx = np.arange(core.batch_size)[:, None]
         s = np.maximum(slots, 0)
         gone = self.live & (slots < 0)
@@ -112,9 +114,10 @@ class RampAgentTable:
         """Free the columns of `ended` [B, K] (their merges ended)."""
         self.ids[ended], self.since_s[ended], self.stall_s[ended] = -1, 0.0, 0.0
 
-    def unnamed_on_ramp(self) -> np.ndarray:
-        """[B] ramp vehicles on the ramp that hold no column."""
-        st, slots = self.core.state, self.slots()
+    def unnamed_on_ramp(self, slots: np.ndarray | None = None) -> np.ndarray:
+        """[B] ramp vehicles on the ramp that hold no column (`slots`: `slots()` if at hand)."""
+        st = self.core.state
+        slots = self.slots() if slots is None else slots
         b_idx = np.arange(self.core.batch_size)[:, None]
         on_ramp = (slots >= 0) & (st.lane[b_idx, np.maximum(slots, 0)] == L.RAMP)
         return st.n_on_ramp - on_ramp.sum(axis=1)

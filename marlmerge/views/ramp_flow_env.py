@@ -130,9 +130,9 @@ class RampFlowParallelEnv(ParallelEnv):
         self._table.assign()
         self._until_an_agent()
         self.agents = self._live()
-        obs = self._observe()
-        zero = dict.fromkeys(EGO_TERMS, 0.0)
-        return obs, {a: self._info(a, zero, OUTCOME_NONE) for a in self.agents}
+        slots = self._table.slots()
+        none = dict.fromkeys(self.agents, OUTCOME_NONE)
+        return self._observe(slots), self._infos(self.agents, {}, none, slots)
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:
@@ -147,23 +147,24 @@ class RampFlowParallelEnv(ParallelEnv):
         sums = {a: out.hw_terms[0, self._column(a)] for a in agents}
         terms = {a: dict(zip(EGO_TERMS, sums[a].tolist(), strict=True)) for a in agents}
         rewards = {a: float(total_reward(sums[a])) for a in agents}
-        outcome = table.outcomes()[0]
+        slots = table.slots()
+        outcome = table.outcomes(slots)[0]
         last = self._cycles >= self.max_cycles
         ends = {a: int(outcome[self._column(a)]) for a in agents}
         terminations = {a: ends[a] in (OUTCOME_SUCCESS, OUTCOME_COLLISION) for a in agents}
         truncations = {a: ends[a] == OUTCOME_TRUNCATED or last for a in agents}
-        obs = self._observe()
-        infos = {a: self._info(a, terms[a], ends[a]) for a in agents}
+        obs = self._observe(slots)
+        infos = self._infos(agents, terms, ends, slots)
         table.release((outcome != OUTCOME_NONE)[None] | last)
         if not last:  # the new ramp vehicles join this step's returns
             table.assign()
             self._until_an_agent()
             new = [a for a in self._live() if a not in agents]
-            obs.update({a: o for a, o in self._observe().items() if a in new})
-            zero = dict.fromkeys(EGO_TERMS, 0.0)
+            slots = table.slots()
+            obs.update({a: o for a, o in self._observe(slots).items() if a in new})
+            infos.update(self._infos(new, {}, dict.fromkeys(new, OUTCOME_NONE), slots))
             for a in new:
                 rewards[a], terminations[a], truncations[a] = 0.0, False, False
-                infos[a] = self._info(a, zero, OUTCOME_NONE)
         self.agents = self._live()
         return obs, rewards, terminations, truncations, infos
 
@@ -188,27 +189,42 @@ class RampFlowParallelEnv(ParallelEnv):
             self._cycles += 1
             table.assign()
 
-    def _observe(self) -> dict[str, np.ndarray]:
-        """Every live agent's observation (those whose merge just ended: their last)."""
+    def _observe(self, slots: np.ndarray) -> dict[str, np.ndarray]:
+        """Every live agent's observation (those whose merge just ended: their last), from the
+        table's `slots()` of now."""
         assert self.core is not None and self._table is not None
-        obs = self.core.observe_agents(self._table.roster())[0]
+        obs = self.core.observe_agents(self._table.roster(slots))[0]
         return {
             self.possible_agents[j]: obs[j].astype(np.float32)
             for j in np.flatnonzero(self._table.live[0])
         }
 
-    def _info(self, agent: str, terms: dict[str, float], outcome: int) -> dict[str, float]:
+    def _infos(
+        self,
+        agents: list[str],
+        terms: dict[str, dict[str, float]],
+        outcomes: dict[str, int],
+        slots: np.ndarray,
+    ) -> dict[str, dict[str, float]]:
+        """The agents' infos (`terms`: each one's summed reward terms; none: zeros), from the
+        table's `slots()` of now."""
         assert self.core is not None and self._table is not None
-        st, j = self.core.state, self._column(agent)
-        s = int(self._table.slots()[0, j])
-        return {
-            **{f"reward_{t}": v for t, v in terms.items()},
-            "outcome": outcome,
-            "time_s": float(st.t_s[0] - self._table.since_s[0, j]),
-            "x_m": float(st.x_m[0, s]) if s >= 0 else float("nan"),
-            "vehicle_id": int(self._table.ids[0, j]),
-            "unnamed_on_ramp": int(self._table.unnamed_on_ramp()[0]),
-        }
+        st, table = self.core.state, self._table
+        unnamed = int(table.unnamed_on_ramp(slots)[0])
+        zero = dict.fromkeys(EGO_TERMS, 0.0)
+        infos = {}
+        for a in agents:
+            j = self._column(a)
+            s = int(slots[0, j])
+            infos[a] = {
+                **{f"reward_{t}": v for t, v in terms.get(a, zero).items()},
+                "outcome": outcomes[a],
+                "time_s": float(st.t_s[0] - table.since_s[0, j]),
+                "x_m": float(st.x_m[0, s]) if s >= 0 else float("nan"),
+                "vehicle_id": int(table.ids[0, j]),
+                "unnamed_on_ramp": unnamed,
+            }
+        return infos
 
 
 def ramp_flow_parallel_env(
