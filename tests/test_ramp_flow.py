@@ -23,7 +23,8 @@ def _drive(core: TrafficCore, n: int, policy: object) -> list[np.ndarray]:
     nan = np.full(core.batch_size, np.nan)
     for _ in range(n):
         roster, obs = core.ramp_agents(8)
-        core.rollout(nan, roster=roster, roster_accel=ramp_commands(policy, obs, roster.mask))
+        cmd = ramp_commands(policy, obs, roster.mask)
+        core.rollout(nan, roster=roster, roster_accel=cmd[..., 0], roster_join=cmd[..., 1])
         seen.append(obs.copy())
     return seen
 
@@ -180,7 +181,8 @@ def test_joining_when_safe_never_collides_and_stops_at_the_lanes_end():
     nan = np.full(2, np.nan)
     for _ in range(500):
         roster, obs = safe.ramp_agents(8)
-        safe.rollout(nan, roster=roster, roster_accel=ramp_commands(idm, obs, roster.mask))
+        cmd = ramp_commands(idm, obs, roster.mask)[..., 0]
+        safe.rollout(nan, roster=roster, roster_accel=cmd)
         st = safe.state
         on_ramp = st.active & (st.lane == L.RAMP)
         assert np.all(st.x_m[on_ramp] < 0.0)  # nobody drives past the lane's end
@@ -240,7 +242,7 @@ def test_ramp_flow_pettingzoo_agents_appear_and_leave():
     while env.agents:
         peak = max(peak, len(env.agents))
         x = np.stack([obs[a] for a in env.agents])[None]  # [1, n, 7]
-        cmd = ramp_commands(gap, x, np.ones(x.shape[:2], dtype=bool))[0]
+        cmd = ramp_commands(gap, x, np.ones(x.shape[:2], dtype=bool))[0, :, :1]
         obs, rewards, term, trunc, infos = env.step(dict(zip(env.agents, cmd, strict=True)))
         for a in rewards:
             assert a not in finished  # no name comes back

@@ -22,6 +22,7 @@ from marlmerge.config.rules import (
     require,
 )
 from marlmerge.config.scenario import (
+    EGO_JOINS,
     MAX_HIGHWAY_AGENTS,
     MAX_LATENCY_S,
     MAX_WARMUP_S,
@@ -47,6 +48,7 @@ from marlmerge.config.scenario import (
 )
 
 __all__ = [
+    "EGO_JOINS",
     "MAX_HIGHWAY_AGENTS",
     "MAX_LATENCY_S",
     "MAX_WARMUP_S",

@@ -62,12 +62,20 @@ def resolve_config(config: ScenarioConfig | str | Path | None, **overrides: Any)
 
 
 def run_scenario(run_cfg: Any) -> ScenarioConfig:
-    """The scenario a training run's `scenario` key names, loaded; an unknown preset or a bad
-    value is a `ValueError` naming the key, raised before the run writes or prints anything."""
+    """The scenario a training run's `scenario` key names, loaded; an unknown preset, a bad value
+    or a scenario the learners cannot train (`ego.join = "chosen"`) is a `ValueError` naming
+    the key, raised before the run writes or prints anything."""
     try:
-        return resolve_config(run_cfg.scenario)
+        scen = resolve_config(run_cfg.scenario)
     except ValueError as err:
         raise ValueError(f"scenario = {run_cfg.scenario!r}: {err}") from None
+    if scen.ego.join != "forced":
+        raise ValueError(
+            f"scenario = {run_cfg.scenario!r} sets ego.join = {scen.ego.join!r}: the learners "
+            "here act on the acceleration alone; train a chosen join through the PettingZoo, "
+            "Gymnasium or torchrl views (an action of two components)"
+        )
+    return scen
 
 
 def preset_kind(path: str | Path) -> str:

@@ -30,6 +30,7 @@ from marlmerge.config.rules import check_values, num, positive, require
 MPH_TO_MPS = 0.44704
 OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel")
 RAMP_JOINS = ("forced", "when_safe")
+EGO_JOINS = ("forced", "chosen")
 """Values of `ramp.join`."""
 """Values of `ego.observation` (the tables: `marlmerge.sim.observation.EGO_LAYOUTS`)."""
 MAX_LATENCY_S = 2.0
@@ -232,6 +233,15 @@ class EgoConfig:
     and of the ego behind its new leader."""
     safety_min_gap_m: float = num(2.0, 0.0, 50.0)
     """Safety filter: ... and at least this bumper gap to both."""
+    join: str = "forced"
+    """Where the ramp vehicle changes into the right lane: "forced" (the paper's: once its body
+    overlaps the lane, x >= the overlap point) or "chosen" (its own decision: the action gets a
+    second component, `join` in [-1, 1], and the vehicle changes lanes at the first simulator
+    step inside the merge zone whose command has join > 0; the zone is then a parallel
+    acceleration lane ending at the merge point, x = 0, where a vehicle that has not joined
+    stops, braking as late as its bounds allow; the observation gets an `on_ramp` feature).
+    With ramp flow it applies to every merging agent; a vehicle without a join command (NaN)
+    joins by `ramp.join`'s rule, or by force in the paper's mode."""
 
 
 @dataclass(frozen=True)
@@ -590,6 +600,15 @@ def validate(cfg: ScenarioConfig) -> None:
             e.observation in OBSERVATION_LAYOUTS,
             f"ego.observation must be one of {', '.join(map(repr, OBSERVATION_LAYOUTS))}, "
             f"got {e.observation!r}",
+        ),
+        (
+            e.join in EGO_JOINS,
+            f"ego.join must be one of {', '.join(map(repr, EGO_JOINS))}, got {e.join!r}",
+        ),
+        (
+            e.join == "forced" or not e.safety_filter,
+            "ego.join = 'chosen' leaves the join to the policy; ego.safety_filter (which holds "
+            "the ego behind the forced join point) must be false",
         ),
         *_sensing_checks(cfg),
         *_sample_checks(cfg),

@@ -85,12 +85,15 @@ def _interval(per_world: np.ndarray) -> tuple[float, float]:
 
 
 def ramp_commands(policy: object, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """[B, K] accelerations of the masked ramp agents from an ego policy (NaN elsewhere: IDM)."""
-    cmd = np.full(mask.shape, np.nan)
+    """[B, K, 2] commands (acceleration, join) of the masked ramp agents from an ego policy
+    (NaN elsewhere: IDM; a join of NaN where the policy sets only the acceleration)."""
+    cmd = np.full((*mask.shape, 2), np.nan)
     if mask.any():
         x = torch.as_tensor(obs[mask], dtype=torch.float32)
         with torch.no_grad():
-            cmd[mask] = np.asarray(policy(x), dtype=np.float64).reshape(-1)  # type: ignore[operator]
+            act = np.asarray(policy(x), dtype=np.float64)  # type: ignore[operator]
+        act = act.reshape(int(mask.sum()), -1)
+        cmd[mask, : act.shape[1]] = act
     return cmd
 
 
@@ -140,7 +143,7 @@ class RampDrivers:
         self.chosen: list[dict[int, int]] = [{} for _ in range(worlds)]
 
     def commands(self, roster: Roster, obs: np.ndarray) -> np.ndarray:
-        """[B, K] commands of the roster's agents (NaN where masked)."""
+        """[B, K, 2] commands (acceleration, join) of the roster's agents (NaN where masked)."""
         if len(self.policies) == 1:
             return ramp_commands(self.policies[0], obs, roster.mask)
         which = np.full(roster.mask.shape, -1)
@@ -150,7 +153,7 @@ class RampDrivers:
                 pick = np.searchsorted(self.cdf, self.rngs[b].random(), side="right")
                 self.chosen[b][vid] = int(min(pick, len(self.policies) - 1))
             which[b, j] = self.chosen[b][vid]
-        cmd = np.full(roster.mask.shape, np.nan)
+        cmd = np.full((*roster.mask.shape, 2), np.nan)
         for i, policy in enumerate(self.policies):
             mine = which == i
             cmd[mine] = ramp_commands(policy, obs, mine)[mine]
@@ -207,7 +210,8 @@ def _drive(
     upstream = (road.x_ramp_start_m - UPSTREAM_WINDOW_M, road.x_ramp_start_m)
     for _ in range(n_steps):
         roster, obs = core.ramp_agents(MAX_RAMP_AGENTS)
-        core.rollout(nan, roster=roster, roster_accel=drivers.commands(roster, obs))
+        cmd = drivers.commands(roster, obs)
+        core.rollout(nan, roster=roster, roster_accel=cmd[..., 0], roster_join=cmd[..., 1])
         if speeds is not None:
             st = core.state
             main = st.active & (st.lane >= 0)  # [B, N] on a highway lane

@@ -41,6 +41,7 @@ EGO_SIDE_KEYS = (
     "ego.safety_filter",
     "ego.safety_min_headway_s",
     "ego.safety_min_gap_m",
+    "ego.join",
 )
 """What belongs to the driver rather than to the traffic: a learned policy keeps these."""
 
@@ -93,7 +94,8 @@ def parse_policy(spec: str) -> PolicySpec:
 
 
 def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
-    """The obs [B, F] -> action [B, 1] function of one policy (and one training run)."""
+    """The obs [B, F] -> action [B, A] function of one policy (and one training run; A = 2
+    with `ego.join = "chosen"`: the rules hold and IDM join at the overlap point)."""
     from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, GapShield
 
     if spec.kind in LEARNED_KINDS:
@@ -101,11 +103,15 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
 
         policy = load_policy(run)
     else:
-        from marlmerge.policies.scripted import IdmEgoPolicy, constant_speed_action
+        from marlmerge.policies.scripted import (
+            IdmEgoPolicy,
+            constant_speed_action,
+            with_join_at_overlap,
+        )
 
         rule = {
-            "hold": constant_speed_action,
-            "idm": IdmEgoPolicy(scenario),
+            "hold": with_join_at_overlap(constant_speed_action, scenario),
+            "idm": with_join_at_overlap(IdmEgoPolicy(scenario), scenario),
             "gap": GapAcceptancePolicy(scenario),
         }[spec.kind]
         policy = lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)  # noqa: E731

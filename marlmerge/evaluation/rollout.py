@@ -30,7 +30,8 @@ from marlmerge.views.torchrl_env import BatchedMergeEnv
 from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
 
 EgoPolicy = Callable[[torch.Tensor], torch.Tensor]
-"""observation [B, F] (the scenario's `ego.observation` layout) -> acceleration [B, 1] (m/s^2)."""
+"""observation [B, F] (the scenario's `ego.observation` layout) -> acceleration [B, 1] (m/s^2);
+[B, 2] (acceleration, join) with `ego.join = "chosen"` (`marlmerge.sim.action`)."""
 HighwayPolicy = Callable[[torch.Tensor], torch.Tensor]
 """highway observation [B, K, 12] -> acceleration [B, K, 1] (m/s^2)."""
 
@@ -104,7 +105,7 @@ def rollout_first_egos(
         interventions = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
         while (outcome == 0).any():
-            action = policy(td.get("observation")).reshape(nw, 1)
+            action = policy(td.get("observation")).reshape(nw, -1)  # [B, A]
             td.set("action", action)
             if highway_policy is not None:
                 td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
@@ -117,7 +118,7 @@ def rollout_first_egos(
             background = np.where(
                 running, env.core.state.background_collisions - background0, background
             )
-            abs_accel += np.abs(action.reshape(nw).double().clamp(lo, hi).numpy()) * running
+            abs_accel += np.abs(action[:, 0].double().clamp(lo, hi).numpy()) * running
             steps += running
             reward += nxt.get("reward").reshape(nw).numpy() * running
             new = nxt.get("outcome").reshape(nw).numpy()

@@ -59,13 +59,14 @@ def record_episodes(
         while outcome == OUTCOME_NONE:
             ego_obs, hw_obs = core.observe(roster)
             with torch.no_grad():
-                a = policy(torch.as_tensor(ego_obs)).reshape(1).double().numpy()
+                act = policy(torch.as_tensor(ego_obs)).reshape(1, -1).double().numpy()
+                a, join = act[:, 0], act[:, 1] if act.shape[1] > 1 else None
                 cmd = None
                 if highway_policy is not None:
                     hw = highway_policy(torch.as_tensor(hw_obs)).reshape(1, k_hw).double()
                     cmd = np.where(roster.mask, hw.numpy(), np.nan)
             for _ in range(cfg.sim.action_repeat):
-                out = core.rollout(a, k=1, roster=roster, roster_accel=cmd)
+                out = core.rollout(a, k=1, roster=roster, roster_accel=cmd, ego_join=join)
                 frames.append(render_scene(core, 0, _agents(roster), view, caption))
                 outcome = int(out.ego_outcome[0])
                 if outcome != OUTCOME_NONE:

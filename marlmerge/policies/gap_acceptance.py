@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.policies.scripted import IdmEgoPolicy, constant_speed_action
+from marlmerge.policies.scripted import IdmEgoPolicy, constant_speed_action, joined
 from marlmerge.sim.observation import EGO_FEATURES, EGO_SCALE, feature_index
 
 __all__ = [
@@ -33,7 +33,7 @@ class GapDecision(NamedTuple):
     """What gap acceptance decided for a batch of observations [...]."""
 
     accel: np.ndarray
-    """[..., 1] its action (m/s^2, float32)."""
+    """[..., 1] its action (m/s^2, float32); [..., 2] with the join (`ego.join = "chosen"`)."""
     accepts: np.ndarray
     """[...] some plan joins the current gap (on the ramp)."""
     plan_accel: np.ndarray
@@ -170,10 +170,13 @@ class GapAcceptancePolicy:
         v_b: np.ndarray,
         t_lead: np.ndarray,
         t_lag: np.ndarray,
+        x_ov: np.ndarray | float | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(lead, lag) margins (s) over the critical gaps at arrival, [..., K]; >= 0: acceptable."""
+        """(lead, lag) margins (s) over the critical gaps at arrival at `x_ov` (default: the
+        overlap point), [..., K]; >= 0: acceptable."""
         cfg = self.cfg
-        length, s0, x_ov = cfg.vehicle.length_m, cfg.driver.min_gap_m, cfg.x_overlap_m
+        length, s0 = cfg.vehicle.length_m, cfg.driver.min_gap_m
+        x_ov = cfg.x_overlap_m if x_ov is None else x_ov
         t = np.minimum(t, 1.0e3)
         s_lead = x_f + v_f * t - length - x_ov - s0
         s_lead -= np.maximum(v_a - v_f, 0.0) ** 2 / (2.0 * self.lead_brake_mps2)
@@ -193,16 +196,34 @@ class GapAcceptancePolicy:
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """obs: [..., F] scaled ego observation (any layout: it reads the paper's features, the
-        first 7) -> [..., 1] acceleration (m/s^2), within bounds."""
+        first 7) -> [..., 1] acceleration (m/s^2), within bounds; with `ego.join = "chosen"`
+        [..., 2], then the join (`join_now`)."""
         return self.decide(obs).accel
+
+    def join_now(self, obs: np.ndarray) -> np.ndarray:
+        """`ego.join = "chosen"`: [...] +1 where the ramp vehicle, inside the merge zone, has an
+        acceptable gap alongside it now (both margins of the gap test >= 0 at its own position,
+        with the critical gaps of its distance to the overlap point), else -1."""
+        cfg = self.cfg
+        raw = np.nan_to_num(np.asarray(obs, dtype=np.float64)[..., : len(EGO_FEATURES)])
+        raw = raw * EGO_SCALE
+        col = {k: raw[..., i] for k, i in _E.items()}
+        x, v = col["ego_position"], np.maximum(col["ego_speed"], 0.0)
+        t_lead, t_lag = self.critical_gaps(np.maximum(cfg.x_overlap_m - x, 0.0))
+        lead, lag = self._margins(
+            np.zeros_like(x), v, col["front_position"], np.maximum(col["front_speed"], 0.0),
+            col["back_position"], np.maximum(col["back_speed"], 0.0), t_lead, t_lag, x,
+        )  # fmt: skip
+        ok = (lead >= 0.0) & (lag >= 0.0) & (x >= cfg.road.x_zone_start_m)
+        return np.where(ok, 1.0, -1.0)
 
     def decide(self, obs: np.ndarray) -> GapDecision:
         """The action of `__call__` and how it was reached (`GapDecision`)."""
         cfg = self.cfg
         lo, hi = cfg.ego.accel_bounds_mps2
         # junk values (nan, inf) become finite, so the answer stays inside the bounds
-        obs = np.asarray(obs, dtype=np.float64)[..., : len(EGO_FEATURES)]
-        obs = np.nan_to_num(obs, nan=0.0, posinf=1e3, neginf=-1e3)
+        obs_all = np.nan_to_num(np.asarray(obs, dtype=np.float64), nan=0.0, posinf=1e3, neginf=-1e3)
+        obs = obs_all[..., : len(EGO_FEATURES)]
         raw = obs * EGO_SCALE
         col = {k: raw[..., i][..., None] for k, i in _E.items()}  # each [..., 1]
         v = np.maximum(col["ego_speed"], 0.0)
@@ -257,13 +278,14 @@ class GapAcceptancePolicy:
             np.where(behind, a_behind, np.where(v0**2 <= -2.0 * lo * d0, a_wait, a_force)),
         )
 
-        a_lane = self._in_lane(obs)[..., 0].astype(np.float64)
-        accel = np.where(x[..., 0] >= cfg.x_overlap_m, a_lane, a_ramp)
-        accel = np.clip(np.nan_to_num(accel, nan=0.0), lo, hi)
+        a_lane = self._in_lane(obs_all)[..., 0].astype(np.float64)
+        in_lane = joined(obs_all, cfg) | (x[..., 0] >= cfg.x_overlap_m)
+        accel = np.where(in_lane, a_lane, a_ramp)
+        accel = np.clip(np.nan_to_num(accel, nan=0.0), lo, hi)[..., None]
+        if cfg.ego.join == "chosen":
+            accel = np.concatenate([accel, self.join_now(obs_all)[..., None]], axis=-1)
         joins = (margin >= 0.0) & arrives & (x < cfg.x_overlap_m)
-        return GapDecision(
-            accel[..., None].astype(np.float32), accept & joins.any(-1), a_cmd, joins
-        )
+        return GapDecision(accel.astype(np.float32), accept & joins.any(-1), a_cmd, joins)
 
 
 class GapShield:
@@ -309,6 +331,11 @@ class GapShield:
         critical_gap_s: float = 0.5,
         forced_gap_s: float | None = None,
     ):
+        if cfg is not None and cfg.ego.join != "forced":
+            raise ValueError(
+                f"GapShield judges joins at the overlap point; ego.join = {cfg.ego.join!r} "
+                "leaves the join to the policy (use ego.join = 'forced')"
+            )
         self.gap = GapAcceptancePolicy(cfg)
         self.judge = GapAcceptancePolicy(
             cfg,

@@ -9,6 +9,8 @@ edge of the sensing range as free road.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
@@ -95,7 +97,7 @@ class IdmEgoPolicy:
         v, x = raw[..., _E["ego_speed"]], raw[..., _E["ego_position"]]
         x_f, v_f = raw[..., _E["front_position"]], raw[..., _E["front_speed"]]
         seen = x_f - x < cfg.ego.sensing_range_m - 1e-6
-        in_lane = x >= cfg.x_overlap_m
+        in_lane = joined(obs, cfg)
         gap = np.where(seen & in_lane, x_f - x - cfg.vehicle.length_m, np.inf)
         d = cfg.driver
         accel = idm_accel(
@@ -111,3 +113,32 @@ class IdmEgoPolicy:
         )
         lo, hi = cfg.ego.accel_bounds_mps2
         return np.clip(accel, lo, hi)[..., None].astype(np.float32)
+
+
+def joined(obs: np.ndarray, cfg: ScenarioConfig) -> np.ndarray:
+    """[...] whether the ramp vehicle of each observation [..., F] is in the right lane: past
+    the overlap point, or, when it chooses its join (`ego.join = "chosen"`), as its last
+    feature `on_ramp` says."""
+    obs = np.asarray(obs, dtype=np.float64)
+    if cfg.ego.join == "chosen":
+        return obs[..., -1] < 0.5
+    return obs[..., _E["ego_position"]] * EGO_SCALE[_E["ego_position"]] >= cfg.x_overlap_m
+
+
+def with_join_at_overlap(
+    rule: Callable[[np.ndarray], np.ndarray], cfg: ScenarioConfig
+) -> Callable[[np.ndarray], np.ndarray]:
+    """A rule that only sets the acceleration ([..., 1]) as a ramp vehicle choosing its join
+    (`ego.join = "chosen"`): it joins where the paper's ego is joined by force, once it overlaps
+    the right lane (join = +1 from there on, -1 before). Without a join choice: `rule` itself."""
+    if cfg.ego.join != "chosen":
+        return rule
+    x_scale = EGO_SCALE[_E["ego_position"]]
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        accel = np.asarray(rule(obs), dtype=np.float32)
+        x = np.asarray(obs, dtype=np.float64)[..., _E["ego_position"]] * x_scale
+        join = np.where(x >= cfg.x_overlap_m, 1.0, -1.0).astype(np.float32)
+        return np.concatenate([accel, join[..., None]], axis=-1)
+
+    return act

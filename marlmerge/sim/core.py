@@ -28,6 +28,7 @@ from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
 from marlmerge.sim.observation import (
     HIGHWAY_FEATURES,
     ego_features,
+    ramp_agent_features,
 )
 from marlmerge.sim.proposal import Proposal
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS
@@ -143,6 +144,8 @@ class TrafficCore:
         self.ego_features = ego_features(cfg)
         """The ego's observation layout (`ego.observation`)."""
         self.obs_size = len(self.ego_features)
+        self.agent_features = ramp_agent_features(cfg)
+        """What a ramp-flow agent sees (`ramp_agents`)."""
         self._ring_len = latency_steps(cfg) + 1 if cfg.sensing.active else 0
         self.parallel = batch_size >= PARALLEL_MIN_WORLDS if parallel is None else bool(parallel)
         self.streams = Streams(cfg, batch_size, proposal)
@@ -150,7 +153,7 @@ class TrafficCore:
             self._set_world_scenario(b, world)
         self._allocate(initial_slots(cfg), 2 * CHUNK)
         self._no_roster = Roster(np.zeros((L.RO_ROWS, batch_size, 0), dtype=np.int64))
-        self._no_cmd = np.zeros((batch_size, 0))
+        self._no_cmd = np.zeros((batch_size, 0, 2))
         self._all_worlds = np.ones(batch_size, dtype=bool)
         if self.parallel:  # a few chunks of worlds per thread
             self._kernel = kernels.rollout_parallel
@@ -336,7 +339,7 @@ class TrafficCore:
             self._place(b, self.streams.fill(b))
         kernels.rebuild_lanes(self.arrays, self.params, sel)
         n_warm = int(round(self.cfg.traffic.warmup_s / self.cfg.sim.dt_s))
-        nan = np.full(self.batch_size, np.nan)
+        nan = np.full((self.batch_size, 2), np.nan)
         done = 0
         while done < n_warm:
             k = min(WARMUP_CHUNK_STEPS, n_warm - done)
@@ -447,36 +450,52 @@ class TrafficCore:
         roster: Roster | None = None,
         roster_accel: np.ndarray | None = None,
         worlds: np.ndarray | None = None,
+        ego_join: np.ndarray | None = None,
+        roster_join: np.ndarray | None = None,
     ) -> Rollout:
         """Hold `ego_accel` ([B] m/s^2, clipped to the ego bounds; NaN: the ego drives by plain
         IDM and ignores the merge) for `k` simulator steps (default `sim.action_repeat`) in every
         world (or in the worlds of the mask `worlds` [B]; the others stand still and only report
         their observations). `roster` names highway agents whose terms and observations are
         computed, and `roster_accel` [B, K] (NaN: scripted) drives them. A world whose ego was
-        running stops at the step its episode ends."""
+        running stops at the step its episode ends. With `ego.join = "chosen"`, `ego_join` [B]
+        and `roster_join` [B, K] are the join commands (> 0: join now, inside the merge zone;
+        NaN, the default: joined as without a choice, `marlmerge.sim.step.joins_now`)."""
         k = self.cfg.sim.action_repeat if k is None else int(k)
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
+        b = self.batch_size
         roster = self._no_roster if roster is None else roster
-        if roster_accel is None:
-            roster_accel = (
-                self._no_cmd
-                if roster.n_agents == 0
-                else np.full((self.batch_size, roster.n_agents), np.nan)
-            )
+        ego_cmd = np.full((b, 2), np.nan)
+        ego_cmd[:, 0] = np.asarray(ego_accel, dtype=np.float64).reshape(b)
+        if ego_join is not None:
+            ego_cmd[:, 1] = np.asarray(ego_join, dtype=np.float64).reshape(b)
+        if roster.n_agents == 0:
+            roster_cmd = self._no_cmd
+        else:
+            roster_cmd = np.full((b, roster.n_agents, 2), np.nan)
+            for c, value in enumerate((roster_accel, roster_join)):
+                if value is None:
+                    continue
+                value = np.asarray(value, dtype=np.float64)
+                if value.shape != (b, roster.n_agents):
+                    raise ValueError(
+                        f"roster commands of shape {value.shape} do not fit {b} worlds and "
+                        f"{roster.n_agents} agents"
+                    )
+                roster_cmd[:, :, c] = value
         step_mask = None if worlds is None else self._mask(worlds)
-        return self._call(
-            np.asarray(ego_accel, dtype=np.float64), k, roster, roster_accel, step_mask
-        )
+        return self._call(ego_cmd, k, roster, roster_cmd, step_mask)
 
     def step(
         self,
         ego_accel: np.ndarray,
         roster: Roster | None = None,
         roster_accel: np.ndarray | None = None,
+        ego_join: np.ndarray | None = None,
     ) -> StepEvents:
         """Advance every world by one simulator step (see `rollout`)."""
-        out = self.rollout(ego_accel, 1, roster, roster_accel)
+        out = self.rollout(ego_accel, 1, roster, roster_accel, ego_join=ego_join)
         flags = self.vi[:, L.VI_FLAGS]
         return StepEvents(
             ego_outcome=out.ego_outcome,
@@ -494,14 +513,9 @@ class TrafficCore:
         roster_cmd: np.ndarray,
         step_mask: np.ndarray | None = None,
     ) -> Rollout:
-        b, n_agents = self.batch_size, roster.n_agents
-        if ego_cmd.shape != (b,):
-            ego_cmd = ego_cmd.reshape(b)
-        if roster.rows.shape != (L.RO_ROWS, b, n_agents) or roster_cmd.shape != (b, n_agents):
-            raise ValueError(
-                f"roster of shape {roster.rows.shape} and roster_accel of shape "
-                f"{roster_cmd.shape} do not fit {b} worlds"
-            )
+        b, n_agents = self.batch_size, roster.n_agents  # ego_cmd [B, 2], roster_cmd [B, K, 2]
+        if roster.rows.shape != (L.RO_ROWS, b, n_agents):
+            raise ValueError(f"roster of shape {roster.rows.shape} does not fit {b} worlds")
         if k != self._served_k:
             self._serve(k)
         mask_before = roster.rows[L.RO_MASK].copy() if n_agents else None
@@ -514,7 +528,7 @@ class TrafficCore:
         status = self._kernel(
             self.arrays, self.sensor, *self._worlds, self.params, k,
             self._all_worlds if step_mask is None else step_mask,
-            ego_cmd, roster.rows, np.ascontiguousarray(roster_cmd, dtype=np.float64),
+            ego_cmd, roster.rows, roster_cmd,
             ego_terms, hw_terms, trace, ego_obs, hw_obs,
         )  # fmt: skip
         if timer is not None:
@@ -590,21 +604,22 @@ class TrafficCore:
     def ramp_agents(self, k: int) -> tuple[Roster, np.ndarray]:
         """Ramp flow: the first `k` vehicles on each world's ramp (downstream first) as agents
         (a `Roster`: pass it to `rollout` with their commands as `roster_accel`) and what each
-        sees, [B, k, 7] float64: the paper's seven ego features, scaled, with perfect sensing
-        (zeros where the ramp holds fewer; `roster.mask`)."""
+        sees, [B, k, F] float64 (`agent_features`: the paper's seven ego features, scaled, with
+        perfect sensing, then `on_ramp` with `ego.join = "chosen"`; zeros where the ramp holds
+        fewer; `roster.mask`)."""
         if not self.cfg.ramp.flowing:
             raise ValueError("ramp_agents needs ramp flow (ramp.flow_vph > 0)")
         rows = np.zeros((L.RO_ROWS, self.batch_size, k), dtype=np.int64)
-        obs = np.zeros((self.batch_size, k, 7))
+        obs = np.zeros((self.batch_size, k, len(self.agent_features)))
         kernels.ramp_agents(self.arrays, self.params, rows, obs)
         return Roster(rows), obs
 
     def observe_agents(self, roster: Roster) -> np.ndarray:
-        """Ramp flow: what each agent of `roster` sees now, [B, K, 7] float64 (`ramp_agents`;
+        """Ramp flow: what each agent of `roster` sees now, [B, K, F] float64 (`ramp_agents`;
         an agent that has joined the right lane sees its leader and follower)."""
         if not self.cfg.ramp.flowing:
             raise ValueError("observe_agents needs ramp flow (ramp.flow_vph > 0)")
-        obs = np.zeros((self.batch_size, roster.n_agents, 7))
+        obs = np.zeros((self.batch_size, roster.n_agents, len(self.agent_features)))
         kernels.observe_agents(self.arrays, self.params, roster.rows, obs)
         return obs
 

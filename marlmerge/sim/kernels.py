@@ -307,11 +307,11 @@ def rollout_world(
     ego_obs: np.ndarray,
     hw_obs: np.ndarray,
 ) -> int:
-    """Up to `k` simulator steps of world `b` with the ego command ego_cmd[b] (see the module
-    docstring). Outputs: ego_terms[b] [len(EGO_TERMS)], hw_terms[b] [K, 8], trace[b, :k]
-    [TR_COLS], the observations, and per world `WI_SUBSTEPS`, the outcome reached
-    (`WI_STEP_OUTCOME`) with the ego's collision partner. Returns `_needs_service`, plus
-    `OVERFLOW` if the world overflowed."""
+    """Up to `k` simulator steps of world `b` with the ego command ego_cmd[b] (acceleration,
+    join: `substep`) and the agents' roster_cmd[b] [K, 2] (see the module docstring). Outputs:
+    ego_terms[b] [len(EGO_TERMS)], hw_terms[b] [K, 8], trace[b, :k] [TR_COLS], the
+    observations, and per world `WI_SUBSTEPS`, the outcome reached (`WI_STEP_OUTCOME`) with the
+    ego's collision partner. Returns `_needs_service`, plus `OVERFLOW` if the world overflowed."""
     vf, vi, wf, wi, lanes, sched = S
     for s in range(vi.shape[2]):
         vi[b, VI_FLAGS, s] = 0
@@ -329,7 +329,7 @@ def rollout_world(
             if started and not live:
                 break
             a_prev, first = wf[b, WF_EGO_CMD], wf[b, WF_EGO_T] <= 0.0  # the ego's last step
-            ego_hit = substep(S, b, p, ego_cmd[b], roster, roster_cmd)
+            ego_hit = substep(S, b, p, ego_cmd[b, 0], ego_cmd[b, 1], roster, roster_cmd)
             if p[P_SENSE_ON] > 0.0 and vi[b, VI_ACTIVE, EGO] == 1:
                 sense_measure(S, X, b, p)
             _trace_row(S, b, trace, i)
@@ -622,7 +622,7 @@ def _rebuild_ramp(S: tuple, b: int) -> int:
 def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
     """Ramp flow: the first K vehicles of each world's ramp list (downstream first) as agents,
     rows [RO_ROWS, B, K] (slot, id, mask; -1 / 0 where the ramp holds fewer), and what each
-    sees, obs [B, K, 7] (`observe_agents`)."""
+    sees, obs [B, K, F] (`observe_agents`)."""
     vf, vi, wf, wi, lanes, sched = S
     for b in range(vf.shape[0]):
         for j in range(rows.shape[2]):
@@ -637,9 +637,9 @@ def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> N
 
 @kernel
 def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
-    """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, 7]: the paper's
-    seven ego features with perfect sensing, its gap vehicles as `gap_vehicles` finds them (zeros
-    where masked)."""
+    """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, F]: the paper's
+    seven ego features with perfect sensing, its gap vehicles as `gap_vehicles` finds them, then
+    `on_ramp` if F = 8 (zeros where masked; `marlmerge.sim.observation.ramp_agent_features`)."""
     vf, vi, wf, wi, lanes, sched = S
     for b in range(vf.shape[0]):
         pb = p[b]
@@ -655,6 +655,8 @@ def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -
             obs[b, j, 2], obs[b, j, 3] = v_f / ss, x_f / ps
             obs[b, j, 4], obs[b, j, 5] = v_b / ss, x_b / ps
             obs[b, j, 6] = v_limit / ss
+            if obs.shape[2] > 7:  # ego.join = "chosen": on_ramp
+                obs[b, j, 7] = 1.0 if vi[b, VI_LANE, s] == RAMP else 0.0
 
 
 @kernel

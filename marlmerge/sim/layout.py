@@ -31,6 +31,7 @@ import numpy as np
 from marlmerge.config import ScenarioConfig, latency_steps
 from marlmerge.sim.observation import (
     ACCEL_SCALE_MPS2,
+    EGO_LAYOUTS,
     POSITION_SCALE_M,
     SPEED_SCALE_MPS,
     TIME_SCALE_S,
@@ -79,6 +80,9 @@ EV_COLLIDED, EV_EXITED = 1, 2
 EV_HIT, EV_TOW, EV_YIELDING, EV_CHANGE, EV_CONTROLLED = 4, 8, 16, 32, 64
 """... in this simulator step: in a collision, to be towed away, yielding to the ramp vehicle,
 changing lanes, driven by an external command."""
+EV_CHOOSES, EV_JOIN = 128, 256
+"""... a ramp agent choosing its own join (`ego.join = "chosen"`, a join command given), and
+that command says join now."""
 
 # ---- wf rows: per-world floats
 (
@@ -290,6 +294,8 @@ _PARAMS = (
     "ramp_flow",
     "ramp_join_when_safe",
     "x_zone_start_m",
+    "ego_join_chosen",
+    "obs_on_ramp_col",
 )
 (
     P_DT,
@@ -373,6 +379,8 @@ _PARAMS = (
     P_RAMP_FLOW,
     P_RAMP_WHEN_SAFE,
     P_X_ZONE_START,
+    P_JOIN_CHOSEN,
+    P_OBS_ON_RAMP,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -447,6 +455,14 @@ def pack_params(cfg: ScenarioConfig) -> np.ndarray:
     return np.array([float(values[name]) for name in _PARAMS])
 
 
+def on_ramp_column(cfg: ScenarioConfig) -> int:
+    """The ego observation's column of `on_ramp` (`ego.join = "chosen"`: after its layout's
+    other features); 0: none."""
+    if cfg.ego.join != "chosen":
+        return 0
+    return len(EGO_LAYOUTS[cfg.ego.observation])
+
+
 def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
     """The opt-in options: the extended observations, sensing, the safety filter, the follower's
     and the jerk reward terms (flags as 0/1)."""
@@ -476,4 +492,6 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "ramp_flow": float(cfg.ramp.flowing),
         "ramp_join_when_safe": float(cfg.ramp.join == "when_safe"),
         "x_zone_start_m": cfg.road.x_zone_start_m,
+        "ego_join_chosen": float(e.join == "chosen"),
+        "obs_on_ramp_col": float(on_ramp_column(cfg)),
     }

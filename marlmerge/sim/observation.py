@@ -13,8 +13,10 @@ The ego has three layouts, chosen by `ego.observation` (`ego_features(cfg)`): `"
 (`EGO_FEATURES`, the paper's state), `"extended"` (`EGO_EXTENDED_FEATURES`: the paper's state
 followed by the right-lane vehicle alongside the ego, the nearest left-lane vehicles and the time
 to the join and merge points) and `"extended_accel"` (the extended layout, then the ego's own
-acceleration). Every layout begins with the paper's seven features, so a reader of those
-(`marlmerge.policies`: gap acceptance, the scripted rules) works with either. In the extended layout
+acceleration). With `ego.join = "chosen"` every layout ends with `on_ramp` (`ON_RAMP_FEATURE`),
+which an agent choosing its join needs to tell joined from not joined. Every layout begins with
+the paper's seven features, so a reader of those (`marlmerge.policies`: gap acceptance, the
+scripted rules) works with any. In the extended layout
 a missing vehicle (none alongside, none in the left lane within the sensing range, or hidden by
 occlusion) is the same virtual vehicle: dx = +sensing range (ahead, alongside) or -sensing range
 (behind), at the speed limit, overlap 0.
@@ -177,9 +179,29 @@ EGO_SCALE = np.array([f.scale for f in EGO_FEATURES])
 HIGHWAY_SCALE = np.array([f.scale for f in HIGHWAY_FEATURES])
 
 
+ON_RAMP_FEATURE = Feature(
+    "on_ramp",
+    "-",
+    1.0,
+    "1 while the ramp vehicle is still on the ramp or the acceleration lane, 0 once it has "
+    'joined the right lane (`ego.join = "chosen"` only: then it follows every layout)',
+)
+
+
+def _join_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
+    return (ON_RAMP_FEATURE,) if cfg.ego.join == "chosen" else ()
+
+
 def ego_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
-    """The ego's observation layout of a scenario (`ego.observation`)."""
-    return EGO_LAYOUTS[cfg.ego.observation]
+    """The ego's observation layout of a scenario (`ego.observation`, then `on_ramp` with
+    `ego.join = "chosen"`)."""
+    return EGO_LAYOUTS[cfg.ego.observation] + _join_features(cfg)
+
+
+def ramp_agent_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
+    """What a ramp-flow agent sees: the paper's seven features (perfect sensing), then
+    `on_ramp` with `ego.join = "chosen"`."""
+    return EGO_FEATURES + _join_features(cfg)
 
 
 def ego_obs_size(cfg: ScenarioConfig) -> int:

@@ -40,6 +40,7 @@ from marlmerge.sim.layout import (
     P_NOISE_ON,
     P_OBS_ACCEL,
     P_OBS_EXTENDED,
+    P_OBS_ON_RAMP,
     P_OCCLUSION,
     P_POS_NOISE,
     P_POSITION_SCALE,
@@ -53,9 +54,11 @@ from marlmerge.sim.layout import (
     P_V_LIMIT,
     P_WIDTH,
     P_X_OVERLAP,
+    RAMP,
     RIGHT,
     VF_V,
     VF_X,
+    VI_LANE,
     WF_EGO_CMD,
     WF_VB,
     WF_VF,
@@ -100,6 +103,8 @@ def ego_observation(
         _times(p, dst, row, x_e, v_e)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = wf[b, WF_EGO_CMD] / p[P_ACCEL_SCALE]
+    if p[P_OBS_ON_RAMP] > 0.0:  # ego.join = "chosen"
+        dst[row, int(p[P_OBS_ON_RAMP])] = 1.0 if vi[b, VI_LANE, EGO] == RAMP else 0.0
 
 
 @kernel(inline=True)

@@ -8,7 +8,7 @@
    ballistic update (a vehicle that stops within the step stops where v reaches 0), in one sweep
    per lane; then the lane changes;
 4. exits downstream, arrivals at the entrance (queued until a safe entry exists), the ego joining
-   the right lane once it overlaps it;
+   the right lane once it overlaps it (or when it chooses, `ego.join = "chosen"`: `joins_now`);
 5. collisions: overlaps of consecutive vehicles in a lane; mainline wrecks are towed away at
    once, the ego's stay until its episode is closed;
 6. the ego's episode clock and outcome, and its gap vehicles after the step.
@@ -30,10 +30,12 @@ from marlmerge.sim.layout import (
     EGO,
     EGO_STREAM,
     EV_CHANGE,
+    EV_CHOOSES,
     EV_COLLIDED,
     EV_CONTROLLED,
     EV_EXITED,
     EV_HIT,
+    EV_JOIN,
     EV_TOW,
     LEFT,
     NEUTRAL,
@@ -54,6 +56,7 @@ from marlmerge.sim.layout import (
     P_HW_HI,
     P_HW_LO,
     P_INTERACTION_RANGE,
+    P_JOIN_CHOSEN,
     P_KEEP_RIGHT,
     P_LC_COOLDOWN,
     P_LC_EVERY,
@@ -292,31 +295,40 @@ def mark_controlled(
     S: tuple, b: int, p: np.ndarray, roster: np.ndarray, roster_cmd: np.ndarray
 ) -> None:
     """Flag (`EV_CONTROLLED`) the highway agents driven by an external command this step and
-    put the command, clipped to the agent bounds, into `VF_ACC`. NaN commands: scripted. With
-    ramp flow the agents are ramp vehicles: clipped to the ego's bounds, on the ramp (capped by
-    IDM behind a ramp leader, `_advance_ramp`) and, as the ego, after joining."""
+    put the command, roster_cmd[b, j, 0] clipped to the agent bounds, into `VF_ACC`. NaN
+    commands: scripted. With ramp flow the agents are ramp vehicles: clipped to the ego's
+    bounds, on the ramp (capped by IDM behind a ramp leader, `_advance_ramp`) and, as the ego,
+    after joining; with `ego.join = "chosen"` a finite join command roster_cmd[b, j, 1] flags
+    the vehicle as choosing its join (`EV_CHOOSES`) and, if > 0, as joining now (`EV_JOIN`)."""
     vf, vi, wf, wi, lanes, sched = S
+    chosen = p[P_JOIN_CHOSEN] > 0.0
     for j in range(roster.shape[2]):
         s = roster[RO_SLOT, b, j]
-        cmd = roster_cmd[b, j]
-        if s <= EGO or roster[RO_MASK, b, j] == 0 or math.isnan(cmd):
+        cmd, join = roster_cmd[b, j, 0], roster_cmd[b, j, 1]
+        if s <= EGO or roster[RO_MASK, b, j] == 0:
             continue
-        if vi[b, VI_ACTIVE, s] == 1 and vi[b, VI_ID, s] == roster[RO_ID, b, j]:
-            if p[P_RAMP_FLOW] > 0.0:  # ramp flow: the agents are ramp vehicles, ego bounds
-                vf[b, VF_ACC, s] = min(max(cmd, p[P_EGO_LO]), p[P_EGO_HI])
-            else:
-                vf[b, VF_ACC, s] = min(max(cmd, p[P_HW_LO]), p[P_HW_HI])
-            vi[b, VI_FLAGS, s] |= EV_CONTROLLED
+        if vi[b, VI_ACTIVE, s] == 0 or vi[b, VI_ID, s] != roster[RO_ID, b, j]:
+            continue
+        if chosen and not math.isnan(join):
+            vi[b, VI_FLAGS, s] |= EV_CHOOSES | (EV_JOIN if join > 0.0 else 0)
+        if math.isnan(cmd):
+            continue
+        if p[P_RAMP_FLOW] > 0.0:  # ramp flow: the agents are ramp vehicles, ego bounds
+            vf[b, VF_ACC, s] = min(max(cmd, p[P_EGO_LO]), p[P_EGO_HI])
+        else:
+            vf[b, VF_ACC, s] = min(max(cmd, p[P_HW_LO]), p[P_HW_HI])
+        vi[b, VI_FLAGS, s] |= EV_CONTROLLED
 
 
 @kernel(inline=True)
-def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
+def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) -> int:
     """Accelerations on the pre-step state and the ballistic update, in one sweep per lane from
     downstream (each vehicle's leader is still known as it was before the step). Mainline drivers
     follow their profile, controlled agents their command (`mark_controlled`), the ego its
     command clipped to its bounds (NaN: plain IDM, ignoring the merge). Returns how many
     vehicles moved. With the safety filter on, the ego's command on the ramp passes through it
-    (`marlmerge.sim.safety`), decided on the pre-step state."""
+    (`marlmerge.sim.safety`), decided on the pre-step state. An ego choosing its join
+    (`ego_chooses`) stops at the acceleration lane's end until it joins (`lane_end_guard`)."""
     vf, vi, wf, wi, lanes, sched = S
     dt = p[P_DT]
     dp = driver_params(p)
@@ -352,7 +364,7 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
                 # (with joins when safe, both would wait for ever)
                 pend = m_pending and not (flowing and x_m - x < length)
                 acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pend, x_m, v_m)
-            vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED)
+            vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED | EV_CHOOSES | EV_JOIN)
             _move(S, b, s, acc, dt)
             x_lead, v_lead = x, v
         moved += n
@@ -362,6 +374,8 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float) -> int:
             acc = _scripted_accel(S, b, EGO, dp, x_e, v_e, INF, v_e, False, x_e, v_e)
         if filtering:
             acc = ramp_a
+        if ego_chooses:
+            acc = lane_end_guard(p, x_e, v_e, acc)
         wf[b, WF_EGO_CMD] = acc
         vi[b, VI_FLAGS, EGO] &= ~(EV_HIT | EV_TOW)
         _move(S, b, EGO, acc, dt)
@@ -376,7 +390,9 @@ def _advance_ramp(S: tuple, b: int, p: np.ndarray, dp: tuple) -> int:
     """Ramp flow: the ramp's vehicles on the pre-step state, downstream first: IDM behind their
     ramp leader (their own v0 and T); an agent's command (`EV_CONTROLLED`) in its place, capped
     by that IDM when a ramp leader is ahead; with `ramp.join = "when_safe"`, also capped by IDM
-    behind the acceleration lane's end (x = 0) as a standing obstacle. Returns how many moved."""
+    behind the acceleration lane's end (x = 0) as a standing obstacle; a vehicle choosing its
+    join (`EV_CHOOSES`) by `lane_end_guard` instead. Returns how many moved. (The join flags
+    stay for `ramp_joins`.)"""
     vf, vi, wf, wi, lanes, sched = S
     dt, length = p[P_DT], dp[6]
     when_safe = p[P_RAMP_WHEN_SAFE] > 0.0
@@ -391,12 +407,36 @@ def _advance_ramp(S: tuple, b: int, p: np.ndarray, dp: tuple) -> int:
         flags = vi[b, VI_FLAGS, s]
         if flags & EV_CONTROLLED:
             acc = min(vf[b, VF_ACC, s], acc) if i > 0 else vf[b, VF_ACC, s]
-        if when_safe:  # the acceleration lane ends at x = 0: a standing obstacle there
+        if flags & EV_CHOOSES:
+            acc = lane_end_guard(p, x, v, acc)
+        elif when_safe:  # the acceleration lane ends at x = 0: a standing obstacle there
             acc = min(acc, _scripted_accel(S, b, s, dp, x, v, -x, 0.0, False, x, v))
         vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED)
         _move(S, b, s, acc, dt)
         x_lead, v_lead = x, v
     return n
+
+
+LANE_END_STOP_M = 0.5
+"""Where a vehicle choosing its join stops, before the acceleration lane's end (m)."""
+
+
+@kernel(inline=True)
+def lane_end_guard(p: np.ndarray, x: float, v: float, acc: float) -> float:
+    """`ego.join = "chosen"`: a vehicle that has not joined stops at the acceleration lane's end
+    (x = 0; at `LANE_END_STOP_M` before it). It keeps its command `acc` (m/s^2) unless, after a
+    step at that command, braking at the ego's bound could no longer stop it there; then it
+    brakes to stop exactly there (harder than the bound by at most one step's worth), and there
+    it stands."""
+    dt = p[P_DT]
+    to_stop = -LANE_END_STOP_M - x  # m
+    if to_stop <= 0.0:  # at the line: stop within this step
+        return min(acc, -v / dt)
+    v1 = max(v + acc * dt, 0.0)
+    left = to_stop - 0.5 * (v + v1) * dt  # m to the line after that step
+    if left <= 0.0 or v1 * v1 >= 2.0 * left * -p[P_EGO_LO]:
+        return min(acc, -v * v / (2.0 * to_stop))  # stops it there from here
+    return acc
 
 
 @kernel
@@ -727,19 +767,16 @@ def _safe_join(S: tuple, b: int, s: int, p: np.ndarray) -> bool:
 
 @kernel
 def ramp_joins(S: tuple, b: int, p: np.ndarray) -> None:
-    """Ramp flow: ramp vehicles join the right lane (`ramp.join`: once they overlap it, as the
-    ego does, or when it is safe in the merge zone) and drive on as neutral mainline drivers;
-    those past the merge point (x >= 0) count as passed, with their travel time from their
-    drawn arrival at the ramp start."""
+    """Ramp flow: ramp vehicles join the right lane (`joins_now`) and drive on as neutral
+    mainline drivers; those past the merge point (x >= 0) count as passed, with their travel
+    time from their drawn arrival at the ramp start."""
     vf, vi, wf, wi, lanes, sched = S
-    when_safe = p[P_RAMP_WHEN_SAFE] > 0.0
     i = 0
     while i < wi[b, WI_N_RAMP]:
         s = lanes[b, RAMP_LIST, i]
-        x = vf[b, VF_X, s]
-        if (not when_safe and x >= p[P_X_OVERLAP]) or (
-            when_safe and x >= p[P_X_ZONE_START] and (x >= 0.0 or _safe_join(S, b, s, p))
-        ):  # (past the lane's end, which IDM's braking rules out: joined by force)
+        flags = vi[b, VI_FLAGS, s]
+        vi[b, VI_FLAGS, s] = flags & ~(EV_CHOOSES | EV_JOIN)
+        if joins_now(S, b, p, s, (flags & EV_CHOOSES) != 0, (flags & EV_JOIN) != 0):
             ll.ramp_remove(S, b, s)
             vi[b, VI_LANE, s] = RIGHT
             vf[b, VF_SINCE_LC, s] = 0.0
@@ -758,13 +795,30 @@ def ramp_joins(S: tuple, b: int, p: np.ndarray) -> None:
                 wi[b, WI_RAMP_PASSED] += 1
 
 
+@kernel
+def joins_now(S: tuple, b: int, p: np.ndarray, s: int, chooses: bool, wants: bool) -> bool:
+    """Ramp vehicle `s` changes into the right lane at the end of this step: choosing its join
+    (`ego.join = "chosen"`), when its command says so (`wants`) inside the merge zone; else by
+    `ramp.join`: once it overlaps the lane ("forced", the paper's, also the ego's) or when the
+    gap at its position is safe (`_safe_join`). Past the lane's end (x >= 0), which the lane-end
+    braking rules out, it is joined by force."""
+    vf, vi, wf, wi, lanes, sched = S
+    x = vf[b, VF_X, s]
+    if chooses:
+        return x >= 0.0 or (wants and x >= p[P_X_ZONE_START])
+    if p[P_RAMP_WHEN_SAFE] > 0.0:
+        return x >= p[P_X_ZONE_START] and (x >= 0.0 or _safe_join(S, b, s, p))
+    return x >= p[P_X_OVERLAP]
+
+
 @kernel(inline=True)
-def ego_join(S: tuple, b: int, p: np.ndarray) -> None:
-    """The ego becomes a right-lane vehicle once its body overlaps the lane."""
+def ego_join(S: tuple, b: int, p: np.ndarray, chooses: bool, wants: bool) -> None:
+    """The ego becomes a right-lane vehicle once it joins (`joins_now`: by default once its body
+    overlaps the lane)."""
     vf, vi, wf, wi, lanes, sched = S
     if vi[b, VI_ACTIVE, EGO] == 0:
         return
-    if vi[b, VI_LANE, EGO] == RAMP and vf[b, VF_X, EGO] >= p[P_X_OVERLAP]:
+    if vi[b, VI_LANE, EGO] == RAMP and joins_now(S, b, p, EGO, chooses, wants):
         vi[b, VI_LANE, EGO] = RIGHT
         ll.insert(S, b, RIGHT, EGO)
     if vi[b, VI_LANE, EGO] == RIGHT:
@@ -912,18 +966,27 @@ def ego_gaps(S: tuple, b: int, p: np.ndarray) -> None:
 
 @kernel
 def substep(
-    S: tuple, b: int, p: np.ndarray, ego_cmd: float, roster: np.ndarray, roster_cmd: np.ndarray
+    S: tuple,
+    b: int,
+    p: np.ndarray,
+    ego_cmd: float,
+    ego_join_cmd: float,
+    roster: np.ndarray,
+    roster_cmd: np.ndarray,
 ) -> bool:
-    """Advance world `b` by one simulator step (see the module docstring). Returns whether the
-    ego collided in this step. Needs the neighbours of the pre-step state (every call leaves
-    them computed)."""
+    """Advance world `b` by one simulator step (see the module docstring): the ego's command
+    `ego_cmd` (m/s^2) and, with `ego.join = "chosen"`, its join command `ego_join_cmd` (> 0:
+    join now; NaN: joined by force); roster_cmd [B, K, 2] the agents' (acceleration, join).
+    Returns whether the ego collided in this step. Needs the neighbours of the pre-step state
+    (every call leaves them computed)."""
     vf, vi, wf, wi, lanes, sched = S
     wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR], wi[b, WI_STEP_OUTCOME] = -1, 0, OUTCOME_NONE
     mark_controlled(S, b, p, roster, roster_cmd)
     n_changes = 0
     if wi[b, WI_STEPS] % int(p[P_LC_EVERY]) == 0:
         n_changes = lane_change_decisions(S, b, p)
-    wi[b, WI_VEH_STEPS] += advance(S, b, p, ego_cmd)
+    ego_chooses = p[P_JOIN_CHOSEN] > 0.0 and not math.isnan(ego_join_cmd)
+    wi[b, WI_VEH_STEPS] += advance(S, b, p, ego_cmd, ego_chooses)
     wf[b, WF_T] += p[P_DT]
     wi[b, WI_STEPS] += 1
     if n_changes:
@@ -932,7 +995,7 @@ def substep(
         ll.resort(S, b, lane)
     exits(S, b, p)
     arrivals(S, b, p)
-    ego_join(S, b, p)
+    ego_join(S, b, p, ego_chooses, ego_chooses and ego_join_cmd > 0.0)
     if p[P_RAMP_FLOW] > 0.0:
         ramp_joins(S, b, p)
     running = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE

@@ -10,7 +10,8 @@ of the single env) share one implementation, `EgoWorlds`, over `TrafficCore.roll
 
 Spaces: observation Box(F) float32 (F = 7, the paper's state, or 16 with `ego.observation =
 "extended"`; `marlmerge.sim.observation`), action Box(1) in the ego's bounds (m/s^2, held for
-`sim.action_repeat` simulator steps).
+`sim.action_repeat` simulator steps); with `ego.join = "chosen"` Box(2): (acceleration, join),
+join in [-1, 1] (`marlmerge.sim.action`), and the observation ends with `on_ramp`.
 Reward: the sum of the named terms (`marlmerge.sim.reward.EGO_TERMS`); `info` holds each as
 `reward_<term>`, and `outcome` (0 running, 1 success, 2 collision, 3 truncated), `ego_time_s`,
 and with `ego.safety_filter` `filter_interventions` (the filter's overrides in the episode).
@@ -41,7 +42,7 @@ import numpy as np
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED, TrafficCore
-from marlmerge.sim.action import as_actions
+from marlmerge.sim.action import action_size, as_actions
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.sim.streams import check_seed, is_seed
 from marlmerge.views.single_ego import EgoWorlds, HighwayPolicy, ego_infos, ego_spaces
@@ -98,7 +99,7 @@ class RampMergeEnv(gymnasium.Env):
             raise RuntimeError(
                 "step() after the episode ended (terminated or truncated): call reset() first"
             )
-        obs, terms, outcome, t = self._worlds.step(as_actions(action, (1,)))
+        obs, terms, outcome, t = self._worlds.step(as_actions(action, (1, action_size(self.cfg))))
         o = int(outcome[0])
         terminated = o in (OUTCOME_SUCCESS, OUTCOME_COLLISION)
         truncated = o == OUTCOME_TRUNCATED
@@ -200,7 +201,7 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
     def step(self, actions):
         if self._worlds is None:
             raise RuntimeError("step() before reset()")
-        a = as_actions(actions, (self.num_envs, 1))
+        a = as_actions(actions, (self.num_envs, action_size(self.cfg)))
         restart = self._done.copy()
         if restart.any():  # next-step autoreset: these worlds send their next ramp vehicle and
             self._worlds.core.next_ego(restart)  # stand still this step (reward 0, not done)

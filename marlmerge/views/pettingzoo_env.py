@@ -10,7 +10,9 @@ Agents
 
 Actions
     Box(1,) longitudinal acceleration in m/s^2, held for `sim.action_repeat` simulator steps.
-    `ramp_0`: [-4.5, 2.5] by default; `highway_*`: `sim.highway_agent_accel_bounds_mps2`
+    `ramp_0`: [-4.5, 2.5] by default, and with `ego.join = "chosen"` Box(2,): (acceleration,
+    join), join in [-1, 1], > 0 changing into the right lane inside the merge zone
+    (`marlmerge.sim.action`); `highway_*`: `sim.highway_agent_accel_bounds_mps2`
     (the same by default; scripted background traffic keeps the vehicle limits).
     Out-of-range values are clipped; NaN, infinite, non-numeric or wrongly shaped actions, agents
     that are not in `possible_agents` and missing actions of live agents raise `ValueError` naming
@@ -65,7 +67,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.config.presets import find_preset, resolve_config  # noqa: F401  (their home: presets)
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.sim.action import agent_actions
+from marlmerge.sim.action import action_bounds, action_size, agent_actions
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
@@ -113,9 +115,8 @@ class RampMergeParallelEnv(ParallelEnv):
         n_hw = self.cfg.sim.n_highway_agents if control == "all" else 0
         self.possible_agents = [EGO_AGENT] + [f"highway_{i}" for i in range(n_hw)]
         self.agents: list[str] = []
-        lo, hi = self.cfg.ego.accel_bounds_mps2
         hw_lo, hw_hi = self.cfg.sim.highway_agent_accel_bounds_mps2
-        self._action_spaces = {EGO_AGENT: spaces.Box(lo, hi, (1,), np.float32)}
+        self._action_spaces = {EGO_AGENT: spaces.Box(*action_bounds(self.cfg), dtype=np.float32)}
         self._observation_spaces = {
             EGO_AGENT: spaces.Box(-np.inf, np.inf, (ego_obs_size(self.cfg),), np.float32)
         }
@@ -197,8 +198,9 @@ class RampMergeParallelEnv(ParallelEnv):
         self._column = {a: j for a, j in zip(self._slots, chosen, strict=True)}
 
     # ------------------------------------------------------------------ step
-    def _parse_actions(self, actions: dict[str, Any]) -> dict[str, float]:
-        return agent_actions(actions, self.possible_agents, self.agents)
+    def _parse_actions(self, actions: dict[str, Any]) -> dict[str, np.ndarray]:
+        sizes = {EGO_AGENT: action_size(self.cfg)}  # (acceleration, join) with a join choice
+        return agent_actions(actions, self.possible_agents, self.agents, sizes)
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:
@@ -211,9 +213,13 @@ class RampMergeParallelEnv(ParallelEnv):
         if self._roster.n_agents:
             roster_cmd = np.full((1, self._roster.n_agents), np.nan)
             for a in hw_agents:
-                roster_cmd[0, self._column[a]] = acts[a]
+                roster_cmd[0, self._column[a]] = acts[a][0]
+        ego = acts[EGO_AGENT]
         out = core.rollout(
-            np.array([acts[EGO_AGENT]]), roster=self._roster, roster_accel=roster_cmd
+            ego[:1],
+            roster=self._roster,
+            roster_accel=roster_cmd,
+            ego_join=ego[1:] if ego.size > 1 else None,
         )
         outcome = int(out.ego_outcome[0])
         ego_terms = {t: float(out.ego_terms[0, i]) for i, t in enumerate(EGO_TERMS)}

@@ -13,13 +13,17 @@ Agents
 Actions
     Box(1,) longitudinal acceleration in m/s^2 within `ego.accel_bounds_mps2` (out-of-range
     values clipped), held for `sim.action_repeat` simulator steps; on the ramp capped by IDM
-    behind the ramp vehicle ahead. Checked as `RampMergeParallelEnv` checks them: a bad value,
-    an unknown agent or a missing action of a live agent raises `ValueError` naming the agent.
+    behind the ramp vehicle ahead. With `ego.join = "chosen"` Box(2,): (acceleration, join),
+    join in [-1, 1], > 0 changing into the right lane inside the merge zone; a vehicle that has
+    not joined stops at the acceleration lane's end (`marlmerge.sim.action`). Checked as
+    `RampMergeParallelEnv` checks them: a bad value, an unknown agent or a missing action of a
+    live agent raises `ValueError` naming the agent.
 
 Observations
     Box float32 [7]: the paper's state (`EGO_FEATURES`, scaled) of this vehicle, with perfect
     sensing: its gap vehicles in the right lane at its position (its leader and follower once it
-    has joined).
+    has joined); [8] with `ego.join = "chosen"`, ending with `on_ramp`
+    (`ramp_agent_features`).
 
 Rewards
     The paper's ego terms (`EGO_TERMS`) for this vehicle's own merge, summed over the env step,
@@ -58,8 +62,8 @@ from marlmerge.sim import (
     OUTCOME_TRUNCATED,
     TrafficCore,
 )
-from marlmerge.sim.action import agent_actions
-from marlmerge.sim.observation import EGO_FEATURES
+from marlmerge.sim.action import action_bounds, action_size, agent_actions
+from marlmerge.sim.observation import ramp_agent_features
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
 from marlmerge.views.ramp_agents import RampAgentTable
@@ -96,9 +100,9 @@ class RampFlowParallelEnv(ParallelEnv):
         self.render_mode = None
         self.possible_agents = [f"ramp_{i}" for i in range(max_agents)]
         self.agents: list[str] = []
-        lo, hi = self.cfg.ego.accel_bounds_mps2
-        self._action_space = spaces.Box(lo, hi, (1,), np.float32)
-        self._observation_space = spaces.Box(-np.inf, np.inf, (len(EGO_FEATURES),), np.float32)
+        self._action_space = spaces.Box(*action_bounds(self.cfg), dtype=np.float32)
+        n_obs = len(ramp_agent_features(self.cfg))
+        self._observation_space = spaces.Box(-np.inf, np.inf, (n_obs,), np.float32)
         self.core: TrafficCore | None = None
         self._table: RampAgentTable | None = None
         self._cycles = 0
@@ -141,8 +145,15 @@ class RampFlowParallelEnv(ParallelEnv):
         assert core is not None and table is not None
         acts = self._parse_actions(actions)
         agents = list(self.agents)
-        cmd = np.array([[acts.get(a, np.nan) for a in self.possible_agents]])
-        out = core.rollout(np.full(1, np.nan), roster=table.roster(), roster_accel=cmd)
+        cmd = np.full((1, len(self.possible_agents), 2), np.nan)  # (acceleration, join)
+        for a, act in acts.items():
+            cmd[0, self._column(a), : act.size] = act
+        out = core.rollout(
+            np.full(1, np.nan),
+            roster=table.roster(),
+            roster_accel=cmd[..., 0],
+            roster_join=cmd[..., 1],
+        )
         self._cycles += 1
         sums = {a: out.hw_terms[0, self._column(a)] for a in agents}
         terms = {a: dict(zip(EGO_TERMS, sums[a].tolist(), strict=True)) for a in agents}
@@ -169,8 +180,9 @@ class RampFlowParallelEnv(ParallelEnv):
         return obs, rewards, terminations, truncations, infos
 
     # ------------------------------------------------------------------ helpers
-    def _parse_actions(self, actions: dict[str, Any]) -> dict[str, float]:
-        return agent_actions(actions, self.possible_agents, self.agents)
+    def _parse_actions(self, actions: dict[str, Any]) -> dict[str, np.ndarray]:
+        sizes = dict.fromkeys(self.possible_agents, action_size(self.cfg))
+        return agent_actions(actions, self.possible_agents, self.agents, sizes)
 
     def _column(self, agent: str) -> int:
         return int(agent.rsplit("_", 1)[1])

@@ -6,11 +6,14 @@ for every merging vehicle at once. The road never ends: the root `done` is alway
 each agent's merge ends on its own.
 
 Group keys (leading dims [B, K]):
-    ("ramp", "observation")  [B, K, 7]  the paper's state of the column's vehicle (`EGO_FEATURES`;
-                                        zeros where the column is free)
+    ("ramp", "observation")  [B, K, F]  the paper's state of the column's vehicle (F = 7;
+                                        `ramp_agent_features`: 8 with `ego.join = "chosen"`,
+                                        then `on_ramp`; zeros where the column is free)
     ("ramp", "mask")         [B, K]     the column holds an agent that acts in this step
-    ("ramp", "action")       [B, K, 1]  acceleration in m/s^2 within `ego.accel_bounds_mps2`;
-                                        NaN raises for an acting agent; free columns ignored
+    ("ramp", "action")       [B, K, A]  acceleration in m/s^2 within `ego.accel_bounds_mps2`
+                                        (A = 1; with `ego.join = "chosen"` A = 2, then the
+                                        join in [-1, 1], > 0: join now); NaN raises for an
+                                        acting agent; free columns ignored
     ("ramp", "reward")       [B, K, 1]  the ego's terms for its own merge (`EGO_TERMS`, no jerk)
     ("ramp", "reward_terms", <term>)  [B, K, 1]
     ("ramp", "terminal")     [B, K]     in "next": its merge ended by success or collision in
@@ -38,7 +41,8 @@ from torchrl.envs import EnvBase
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.sim.observation import EGO_FEATURES
+from marlmerge.sim.action import action_bounds, action_size
+from marlmerge.sim.observation import ramp_agent_features
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.views.ramp_agents import RampAgentTable
 
@@ -70,8 +74,9 @@ class RampFlowTorchEnv(EnvBase):
         self.table = RampAgentTable(self.core, max_agents, reuse=True)
         self.table.assign()
         b, k, dev = num_worlds, max_agents, device
-        f = len(EGO_FEATURES)
-        lo, hi = self.cfg.ego.accel_bounds_mps2
+        f = len(ramp_agent_features(self.cfg))
+        self.action_size = m = action_size(self.cfg)
+        lo, hi = (torch.as_tensor(v).expand(b, k, m) for v in action_bounds(self.cfg))
 
         def flag(*shape: int) -> Unbounded:
             return Unbounded(shape, dtype=torch.bool, device=dev)
@@ -97,7 +102,7 @@ class RampFlowTorchEnv(EnvBase):
         )
         self.full_action_spec = Composite(
             ramp=Composite(
-                action=Bounded(lo, hi, (b, k, 1), dtype=torch.float32, device=dev),
+                action=Bounded(lo, hi, (b, k, m), dtype=torch.float32, device=dev),
                 shape=(b, k),
                 device=dev,
             ),
@@ -138,20 +143,24 @@ class RampFlowTorchEnv(EnvBase):
         return self._output(np.zeros((b, k, len(EGO_TERMS))), none, no, with_reward=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        b, k = self.num_worlds, self.n_agents
+        b, k, m = self.num_worlds, self.n_agents, self.action_size
         act = tensordict.get((GROUP, "action"))
-        if act.shape[-3:] != (b, k, 1):
-            raise ValueError(f"('ramp', 'action') must have shape {(b, k, 1)}, got {act.shape}")
-        cmd = act.reshape(b, k).to(torch.float64).cpu().numpy()
+        if act.shape[-3:] != (b, k, m):
+            raise ValueError(f"('ramp', 'action') must have shape {(b, k, m)}, got {act.shape}")
+        cmd = act.reshape(b, k, m).to(torch.float64).cpu().numpy()
         live = self.table.live
-        bad = live & ~np.isfinite(cmd)
+        bad = live & ~np.isfinite(cmd).all(-1)
         if bad.any():
             w, a = (int(i[0]) for i in np.nonzero(bad))
             raise ValueError(
-                f"action of ramp agent {a} in world {w} must be finite, got {cmd[w, a]}"
+                f"action of ramp agent {a} in world {w} must be finite, got {cmd[w, a].tolist()}"
             )
+        cmd = np.where(live[..., None], cmd, np.nan)
         out = self.core.rollout(
-            np.full(b, np.nan), roster=self.table.roster(), roster_accel=np.where(live, cmd, np.nan)
+            np.full(b, np.nan),
+            roster=self.table.roster(),
+            roster_accel=cmd[..., 0],
+            roster_join=cmd[..., 1] if m > 1 else None,
         )
         outcome = self.table.outcomes()
         ended = outcome != OUTCOME_NONE

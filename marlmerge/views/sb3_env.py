@@ -25,7 +25,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
-from marlmerge.sim.action import as_actions
+from marlmerge.sim.action import action_size, as_actions
 from marlmerge.views.single_ego import EgoWorlds, HighwayPolicy, ego_infos, ego_spaces
 
 
@@ -59,7 +59,7 @@ class MergeVecEnv(VecEnv):
         return self._worlds.observe()
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = as_actions(actions, (self.num_envs, 1))
+        self._actions = as_actions(actions, (self.num_envs, action_size(self.cfg)))
 
     def step_wait(self):
         if self._worlds is None:

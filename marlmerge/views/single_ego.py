@@ -10,6 +10,7 @@ from gymnasium import spaces
 
 from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.sim import TrafficCore
+from marlmerge.sim.action import action_bounds, split_actions
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import EGO_TERMS
 
@@ -54,23 +55,27 @@ class EgoWorlds:
     def step(
         self, action: np.ndarray, worlds: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """action [B] (in the worlds of the mask `worlds`, all if None) -> (obs [B, F], terms
-        [B, len(EGO_TERMS)], outcome [B], ego_time_s [B])."""
+        """action [B] or, with a join choice, [B, 2] (`marlmerge.sim.action`; in the worlds of
+        the mask `worlds`, all if None) -> (obs [B, F], terms [B, len(EGO_TERMS)], outcome [B],
+        ego_time_s [B])."""
         cmd = None
         if self.highway_policy is not None:
             act = np.asarray(self.highway_policy(self.hw_obs), dtype=np.float64)
             cmd = np.where(self.roster.mask, act.reshape(self.b, self.k), np.nan)
-        out = self.core.rollout(action, roster=self.roster, roster_accel=cmd, worlds=worlds)
+        accel, join = split_actions(action)
+        out = self.core.rollout(
+            accel, roster=self.roster, roster_accel=cmd, worlds=worlds, ego_join=join
+        )
         self.hw_obs = out.hw_obs
         return out.ego_obs, out.ego_terms, out.ego_outcome, self.core.state.ego_time_s.copy()
 
 
 def ego_spaces(cfg: ScenarioConfig) -> tuple[spaces.Box, spaces.Box]:
-    """The ego's observation Box(F) and action Box(1) (m/s^2, within its bounds)."""
-    lo, hi = cfg.ego.accel_bounds_mps2
+    """The ego's observation Box(F) and action Box(1) (m/s^2, within its bounds), Box(2) with
+    `ego.join = "chosen"` (acceleration, join; `marlmerge.sim.action`)."""
     return (
         spaces.Box(-np.inf, np.inf, (ego_obs_size(cfg),), np.float32),
-        spaces.Box(np.float32(lo), np.float32(hi), (1,), np.float32),
+        spaces.Box(*action_bounds(cfg), dtype=np.float32),
     )
 
 

@@ -11,7 +11,9 @@ traffic.
 Keys (all with leading dim B):
     "observation" [B, F]   the ego's observation: F = 7 (the paper's state) or 16
                            (`ego.observation = "extended"`), `marlmerge.sim.observation`
-    "action"      [B, 1]   acceleration in m/s^2, clipped to the ego bounds; NaN raises
+    "action"      [B, A]   acceleration in m/s^2, clipped to the ego bounds (A = 1); with
+                           `ego.join = "chosen"` A = 2, then the join in [-1, 1] (> 0: join
+                           now; `marlmerge.sim.action`); NaN raises
     "reward"      [B, 1]   sum of the named terms over the env step
     "reward_terms", <term> [B, 1] each named term (`marlmerge.sim.reward.EGO_TERMS`)
     "outcome"     [B, 1]   int64 OUTCOME_* code of the ego (0 while running)
@@ -44,7 +46,7 @@ from marlmerge.sim import (
     Roster,
     TrafficCore,
 )
-from marlmerge.sim.action import as_actions
+from marlmerge.sim.action import action_bounds, action_size, as_actions, split_actions
 from marlmerge.sim.proposal import Proposal
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.sim.streams import ScenarioSource
@@ -87,7 +89,7 @@ class BatchedMergeEnv(EnvBase):
         """Called with every env step's `Rollout` (evaluation records trajectories from its
         per-simulator-step ego trace)."""
         b = num_worlds
-        lo, hi = self.cfg.ego.accel_bounds_mps2
+        self.action_size = action_size(self.cfg)
         self.observation_spec = Composite(
             observation=Unbounded((b, self.core.obs_size), dtype=torch.float32, device=device),
             reward_terms=Composite(
@@ -108,7 +110,7 @@ class BatchedMergeEnv(EnvBase):
             self.observation_spec["scenario_tag"] = Unbounded(
                 (b, 1), dtype=torch.int64, device=device
             )
-        self.action_spec = Bounded(lo, hi, (b, 1), dtype=torch.float32, device=device)
+        self.action_spec = ego_action_spec(self.cfg, b, device)
         self.reward_spec = Unbounded((b, 1), dtype=torch.float32, device=device)
         self.full_done_spec = Composite(
             {
@@ -152,9 +154,10 @@ class BatchedMergeEnv(EnvBase):
         return out
 
     def _actions(self, tensordict: TensorDictBase) -> np.ndarray:
-        """The ego accelerations [B] of a step; NaN or infinite values raise, naming the world."""
-        action = tensordict.get("action").reshape(self.num_worlds).to(torch.float64).cpu().numpy()
-        return as_actions(action, (self.num_worlds,))
+        """The ego actions [B] (accelerations) or [B, 2] (with the join) of a step; NaN or
+        infinite values raise, naming the world."""
+        action = tensordict.get("action").to(torch.float64).cpu().numpy()
+        return as_actions(action, (self.num_worlds, self.action_size))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = self._simulate(self._actions(tensordict))
@@ -163,9 +166,10 @@ class BatchedMergeEnv(EnvBase):
     def _simulate(
         self, action: np.ndarray, roster: Roster | None = None, roster_cmd: np.ndarray | None = None
     ) -> Rollout:
-        """One env step of the core: the ego accelerations `action` [B] (and the roster's
+        """One env step of the core: the ego actions `action` [B] or [B, 2] (and the roster's
         commands [B, K], NaN = scripted) held for `sim.action_repeat` simulator steps."""
-        out = self.core.rollout(action, roster=roster, roster_accel=roster_cmd)
+        accel, join = split_actions(action)
+        out = self.core.rollout(accel, roster=roster, roster_accel=roster_cmd, ego_join=join)
         if self.recorder is not None:
             self.recorder(out)
         return out
@@ -206,3 +210,9 @@ class BatchedMergeEnv(EnvBase):
         if self.core.scenario_source is not None:
             out["scenario_tag"] = col(self.core.world_tag.copy(), torch.int64)
         return out
+
+
+def ego_action_spec(cfg: ScenarioConfig, b: int, device: Any) -> Bounded:
+    """The ego's action spec [B, A] (`marlmerge.sim.action.action_bounds`)."""
+    lo, hi = (torch.as_tensor(v).expand(b, len(v)) for v in action_bounds(cfg))
+    return Bounded(lo, hi, (b, len(action_bounds(cfg)[0])), dtype=torch.float32, device=device)

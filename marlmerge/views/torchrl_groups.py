@@ -47,7 +47,7 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.sim import Roster
 from marlmerge.sim.observation import HIGHWAY_FEATURES
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
-from marlmerge.views.torchrl_env import BatchedMergeEnv
+from marlmerge.views.torchrl_env import BatchedMergeEnv, ego_action_spec
 
 GROUP = "highway"
 
@@ -101,9 +101,8 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         )
         self.observation_spec[GROUP] = group_obs
         self.observation_spec["opponent"] = Unbounded((b, 1), dtype=torch.int64, device=dev)
-        lo, hi = cfg.ego.accel_bounds_mps2
         self.full_action_spec = Composite(
-            action=Bounded(lo, hi, (b, 1), dtype=torch.float32, device=dev),
+            action=ego_action_spec(cfg, b, dev),
             highway=Composite(
                 action=Bounded(
                     *self.highway_bounds_mps2, (b, k, 1), dtype=torch.float32, device=dev
