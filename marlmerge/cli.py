@@ -197,9 +197,12 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
 def _print_evaluation(ev: dict) -> None:
     if "merged_vph" in ev:  # a ramp-flow run: the merge as a whole
         lo, hi = ev["merged_vph_ci95"]
+        head = f"greedy evaluation under ramp flow ({ev['ramp_demand_vph']:g} veh/h on the ramp): "
+        if ev["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
+            print(f"{head}no ramp vehicle merged, {ev['ramp_collisions']} collisions")
+            return
         print(
-            f"greedy evaluation under ramp flow ({ev['ramp_demand_vph']:g} veh/h on the ramp): "
-            f"merged {ev['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
+            f"{head}merged {ev['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
             f"{ev['ramp_delay_s']:.1f} s, {ev['ramp_collisions']} collisions "
             f"({ev['ramp_collisions_per_1000']:.2f} per 1,000 merged)"
         )

@@ -153,10 +153,43 @@ def test_ramp_flow_with_gap_acceptance_choosing_joins():
     core._check_lanes()
 
 
-def test_training_refuses_a_chosen_join(tmp_path, capsys):
+def test_the_quadratic_learner_trains_a_chosen_join(tmp_path, capsys):
+    from marlmerge.cli import main
+    from marlmerge.learners.loading import load_policy
+
+    out = tmp_path / "r"
+    sets = ["--set", "scenario=chosen_join", "--set", "total_sim_steps=4096"]
+    sets += ["--set", "eval_episodes=20", "--set", "update_path=fast", "--no-progress"]
+    assert main(["train", "quick", *sets, "--out", str(out)]) == 0
+    policy = load_policy(out)
+    obs = torch.zeros(3, 8)
+    act = policy(obs)
+    assert act.shape == (3, 2) and (act[:, 1].abs() < 1.0).all()
+    assert main(["evaluate", str(out), "--episodes", "10"]) == 0
+    assert '"episodes": 10' in capsys.readouterr().out
+
+
+def test_what_cannot_train_a_chosen_join_is_refused(tmp_path, capsys):
     from marlmerge.cli import main
 
     out = tmp_path / "r"
-    assert main(["train", "paper", "--set", "scenario=chosen_join", "--out", str(out)]) == 2
-    assert "sets ego.join = 'chosen'" in capsys.readouterr().err
+    assert main(["train", "dqn_quick", "--set", "scenario=chosen_join", "--out", str(out)]) == 2
+    assert "only the quadratic-Q learner" in capsys.readouterr().err
+    assert main(["train", "quick", "--set", "scenario=chosen_join", "--seeds", "0-1",
+                 "--out", str(out)]) == 2  # fmt: skip
+    assert "--seeds" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_merge_where_nothing_merged_reports_undefined_values():
+    import json
+
+    from marlmerge.evaluation.ramp_flow import _COUNTERS, _result
+
+    zeros = {k: np.zeros(2) for k in (*_COUNTERS, "ramp_max_queue")}
+    after = {**zeros, "ramp_entered": np.array([30.0, 28.0]), "ramp_max_queue": np.array([9, 7])}
+    r = _result(FLOW_CHOSEN, "x", 2, 3600.0, zeros, after, np.ones(4))
+    row = r.to_dict()
+    assert row["merged_vph"] == 0.0 and row["ramp_delay_s"] is None
+    assert row["ramp_collisions_per_1000"] is None and row["ramp_delay_s_ci95"] == (None, None)
+    json.loads(json.dumps(row), parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))

@@ -29,13 +29,18 @@ def _net(seed: int = 0, **kw) -> qq.QuadraticQNet:
     return qq.QuadraticQNet(OBS_DIM, kw.pop("hidden", 16), generator=_gen(seed), **kw)
 
 
-def _batch(n: int, g: torch.Generator, terminated: torch.Tensor | None = None) -> TensorDict:
+def _batch(
+    n: int, g: torch.Generator, terminated: torch.Tensor | None = None, join: bool = False
+) -> TensorDict:
     if terminated is None:
         terminated = torch.rand(n, 1, generator=g) < 0.3
+    action = torch.rand(n, 1, generator=g) * (HIGH - LOW) + LOW
+    if join:  # a second component in [-1, 1] (ego.join = "chosen")
+        action = torch.cat([action, torch.rand(n, 1, generator=g) * 2.0 - 1.0], -1)
     return TensorDict(
         {
             "observation": torch.randn(n, OBS_DIM, generator=g),
-            "action": torch.rand(n, 1, generator=g) * (HIGH - LOW) + LOW,
+            "action": action,
             ("next", "reward"): torch.randn(n, 1, generator=g),
             ("next", "terminated"): terminated,
             ("next", "observation"): torch.randn(n, OBS_DIM, generator=g),
@@ -50,9 +55,9 @@ def _perturb_target(loss: qq.QuadraticQLoss, g: torch.Generator) -> None:
             t.add_(0.05 * torch.randn(t.shape, generator=g))
 
 
-def _filled_replay(n: int, g: torch.Generator) -> qq.TransitionReplay:
-    rep = qq.TransitionReplay(2 * n, OBS_DIM)
-    rep.extend_tensordict(_batch(n, g))
+def _filled_replay(n: int, g: torch.Generator, join: bool = False) -> qq.TransitionReplay:
+    rep = qq.TransitionReplay(2 * n, OBS_DIM, action_dim=2 if join else 1)
+    rep.extend_tensordict(_batch(n, g, join=join))
     return rep
 
 
@@ -279,13 +284,14 @@ def test_fast_updater_copies_target_every_p_updates():
 # --- fast path -------------------------------------------------------------------------------
 
 
-def _fast_vs_reference(k: int, compile: bool = False) -> None:
+def _fast_vs_reference(k: int, compile: bool = False, join: bool = False) -> None:
     g = _gen(15)
-    rep = _filled_replay(500, g)
+    rep = _filled_replay(500, g, join)
     rows = rep.sample((k, 32), g)
     pair = []
+    extra = ((-1.0, 1.0),) if join else ()
     for _ in range(2):
-        loss = qq.QuadraticQLoss(_net(hidden=64), gamma=0.95)
+        loss = qq.QuadraticQLoss(_net(hidden=64, extra_bounds=extra), gamma=0.95)
         _perturb_target(loss, _gen(16))
         pair.append(loss)
     fast_loss, ref_loss = pair
@@ -327,6 +333,28 @@ def _fast_vs_reference(k: int, compile: bool = False) -> None:
 
 def test_fast_path_matches_lossmodule_and_adam():
     _fast_vs_reference(k=5)
+
+
+def test_fast_path_with_a_join_component_matches_lossmodule_and_adam():
+    _fast_vs_reference(k=5, join=True)
+
+
+def test_a_second_action_component_is_a_separable_quadratic():
+    net = _net(3, extra_bounds=((-1.0, 1.0),))
+    obs = torch.randn(5, OBS_DIM, generator=_gen(4))
+    a, b, c = net(obs)
+    assert a.shape == b.shape == (5, 2) and c.shape == (5, 1) and (a < 0).all()
+    assert (b[:, 0] > LOW).all() and (b[:, 0] < HIGH).all() and (b[:, 1].abs() < 1.0).all()
+    grid = torch.stack(
+        torch.meshgrid(torch.linspace(LOW, HIGH, 141), torch.linspace(-1, 1, 81), indexing="ij"),
+        -1,
+    ).reshape(-1, 2)  # [G, 2]
+    q = net.q(obs[:, None, :].expand(-1, grid.shape[0], -1), grid[None])  # [5, G, 1]
+    best = grid[q[..., 0].argmax(-1)]
+    torch.testing.assert_close(best, net.greedy(obs), atol=0.051, rtol=0.0)
+    torch.testing.assert_close(net.q(obs, net.greedy(obs)), net.max_value(obs))
+    # the policy-file keys stay the paper's
+    assert set(net.state_dict()) == set(_net().state_dict())
 
 
 @pytest.mark.slow

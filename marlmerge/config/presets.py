@@ -63,17 +63,19 @@ def resolve_config(config: ScenarioConfig | str | Path | None, **overrides: Any)
 
 def run_scenario(run_cfg: Any) -> ScenarioConfig:
     """The scenario a training run's `scenario` key names, loaded; an unknown preset, a bad value
-    or a scenario the learners cannot train (`ego.join = "chosen"`) is a `ValueError` naming
-    the key, raised before the run writes or prints anything."""
+    or a scenario its learner cannot train (`ego.join = "chosen"` needs quadq) is a `ValueError`
+    naming the key, raised before the run writes or prints anything."""
     try:
         scen = resolve_config(run_cfg.scenario)
     except ValueError as err:
         raise ValueError(f"scenario = {run_cfg.scenario!r}: {err}") from None
-    if scen.ego.join != "forced":
+    algorithm = getattr(run_cfg, "algorithm", None)  # a co-training run has none
+    if scen.ego.join != "forced" and algorithm != "quadq":
         raise ValueError(
-            f"scenario = {run_cfg.scenario!r} sets ego.join = {scen.ego.join!r}: the learners "
-            "here act on the acceleration alone; train a chosen join through the PettingZoo, "
-            "Gymnasium or torchrl views (an action of two components)"
+            f"scenario = {run_cfg.scenario!r} sets ego.join = {scen.ego.join!r}: an action of "
+            "two components, which only the quadratic-Q learner (algorithm = 'quadq') takes; "
+            f"{'co-training' if algorithm is None else repr(algorithm)} acts on the "
+            "acceleration alone"
         )
     return scen
 

@@ -71,12 +71,24 @@ class RampFlowResult:
     wall_s: float = 0.0
 
     def to_dict(self) -> dict[str, object]:
-        return asdict(self)
+        """The fields, with a value undefined in this run (NaN: no ramp vehicle merged) as None,
+        so the dict is strict JSON."""
+        return {k: _defined(v) for k, v in asdict(self).items()}
+
+
+def _defined(value: object) -> object:
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, tuple):
+        return tuple(_defined(v) for v in value)
+    return value
 
 
 def _interval(per_world: np.ndarray) -> tuple[float, float]:
-    """95 % t-interval of the mean over worlds (normal quantile: worlds >= 2)."""
+    """95 % t-interval of the mean over worlds (normal quantile: worlds >= 2; NaN: none)."""
     n = per_world.size
+    if n == 0:
+        return (math.nan, math.nan)
     mean = float(per_world.mean())
     if n < 2:
         return (mean, mean)
@@ -254,9 +266,13 @@ def _result(
     merged = d["ramp_passed"] * per_hour  # [B]
     ramp_path_m = -cfg.road.x_ramp_start_m
     free_s = ramp_path_m / cfg.road.speed_limit_mps
-    passed = np.maximum(d["ramp_passed"], 1.0)
-    delay = d["ramp_travel_s"] / passed - free_s  # [B]
+    some = d["ramp_passed"] > 0  # [B] worlds where a ramp vehicle merged
+    delay = d["ramp_travel_s"][some] / d["ramp_passed"][some] - free_s  # [B'] per world
     total_passed = float(d["ramp_passed"].sum())
+
+    def per_merged(x: float) -> float:  # none merged: undefined
+        return x / total_passed if total_passed > 0 else math.nan
+
     v_merge = speeds[0] / max(speeds[1], 1.0)
     v_up = speeds[2] / max(speeds[3], 1.0)
     return RampFlowResult(
@@ -268,13 +284,13 @@ def _result(
         merged_vph=float(merged.mean()),
         merged_vph_ci95=_interval(merged),
         ramp_entered_vph=float(d["ramp_entered"].mean() * per_hour),
-        ramp_travel_s=float(d["ramp_travel_s"].sum() / max(total_passed, 1.0)),
-        ramp_delay_s=float(d["ramp_travel_s"].sum() / max(total_passed, 1.0) - free_s),
+        ramp_travel_s=per_merged(float(d["ramp_travel_s"].sum())),
+        ramp_delay_s=per_merged(float(d["ramp_travel_s"].sum())) - free_s,
         ramp_delay_s_ci95=_interval(delay),
         ramp_wait_s=float(d["ramp_wait_s"].sum() / max(float(d["ramp_entered"].sum()), 1.0)),
         ramp_max_queue=int(after["ramp_max_queue"].max()),
         ramp_collisions=int(d["ramp_collisions"].sum()),
-        ramp_collisions_per_1000=1000.0 * float(d["ramp_collisions"].sum()) / max(total_passed, 1),
+        ramp_collisions_per_1000=per_merged(1000.0 * float(d["ramp_collisions"].sum())),
         background_collisions=int(d["background_collisions"].sum()),
         mainline_speed_merge_mps=float(v_merge),
         mainline_speed_upstream_mps=float(v_up),

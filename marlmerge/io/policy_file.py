@@ -33,7 +33,12 @@ from typing import Any
 from marlmerge.config import ScenarioConfig, from_dict
 from marlmerge.config.training import ALGORITHMS as EGO_ALGORITHMS
 from marlmerge.io import files
-from marlmerge.sim.observation import EGO_FEATURES, EGO_LAYOUTS, HIGHWAY_FEATURES
+from marlmerge.sim.observation import (
+    EGO_FEATURES,
+    EGO_LAYOUTS,
+    HIGHWAY_FEATURES,
+    ON_RAMP_FEATURE,
+)
 
 FORMAT = "marlmerge-policy"
 VERSION = 1
@@ -46,12 +51,13 @@ V0_HIGHWAY_BOUNDS_MPS2 = (-3.0, 3.0)
 
 def feature_names(group: str, scenario: dict[str, Any] | None = None) -> list[str]:
     """The feature names a `group` network reads in `scenario` (a config dict; the ego's layout
-    is its `ego.observation`, "paper" when absent)."""
+    is its `ego.observation`, "paper" when absent, then `on_ramp` with `ego.join = "chosen"`)."""
     if group == "ego" and scenario is not None:
         layout = scenario.get("ego", {}).get("observation", "paper")
         if layout not in EGO_LAYOUTS:
             raise ValueError(f"unknown ego observation layout {layout!r}")
-        return [f.name for f in EGO_LAYOUTS[layout]]
+        chosen = scenario.get("ego", {}).get("join", "forced") == "chosen"
+        return [f.name for f in EGO_LAYOUTS[layout]] + ([ON_RAMP_FEATURE.name] if chosen else [])
     return [f.name for f in GROUPS[group]]
 
 
@@ -172,10 +178,13 @@ def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
             raise ValueError(
                 f"{path}: policy_state.{key} must be an integer >= 1, got {state[key]!r}"
             )
-    bounds = saved["action_bounds_mps2"]
-    ok = len(bounds) == 2 and all(isinstance(b, int | float) for b in bounds)
-    if not ok or not all(math.isfinite(b) for b in bounds) or not bounds[0] < bounds[1]:
-        raise ValueError(f"{path}: action_bounds_mps2 must be [low, high], got {bounds!r}")
+    extra = state.get("extra_bounds", [])  # the join's, with ego.join = "chosen"
+    if not isinstance(extra, list | tuple):
+        raise ValueError(f"{path}: policy_state.extra_bounds must be a list, got {extra!r}")
+    for bounds in (saved["action_bounds_mps2"], *extra):
+        if not _is_bounds(bounds):
+            key = "action_bounds_mps2" if bounds is saved["action_bounds_mps2"] else "extra_bounds"
+            raise ValueError(f"{path}: {key} must be [low, high], got {bounds!r}")
     try:
         from_dict(ScenarioConfig, saved["scenario"])
     except ValueError as err:
@@ -232,3 +241,10 @@ def _from_v0(saved: dict[str, Any], group: str, path: Path) -> dict[str, Any]:
         "config": saved.get("config", {}),
         "scenario": saved["scenario"],
     }
+
+
+def _is_bounds(bounds: Any) -> bool:
+    """[low, high]: two finite numbers, low < high."""
+    ok = isinstance(bounds, list | tuple) and len(bounds) == 2
+    ok = ok and all(isinstance(b, int | float) and not isinstance(b, bool) for b in bounds)
+    return ok and all(math.isfinite(b) for b in bounds) and bounds[0] < bounds[1]

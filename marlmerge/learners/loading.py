@@ -89,7 +89,8 @@ def load_scenario_of(path: str | Path):
 
 
 def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
-    """Greedy policy of a saved run, any algorithm: ``obs [B, 7] -> acceleration [B, 1]`` m/s^2.
+    """Greedy policy of a saved run, any algorithm: ``obs [B, 7] -> acceleration [B, 1]`` m/s^2
+    (a quadq policy of `ego.join = "chosen"`: [B, 2], acceleration and join).
 
     ``path`` is a ``policy.pt`` (`marlmerge.io.policy_file`) or a run folder holding one. The
     returned function runs without gradients and leaves the global RNG untouched.
@@ -99,7 +100,10 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     lo, hi = saved["action_bounds_mps2"]
     obs_dim = saved["observation"]["size"]
     if algorithm == "quadq":
-        net = QuadraticQNet(obs_dim, state["hidden"], action_low=lo, action_high=hi)
+        extra = tuple(tuple(b) for b in state.get("extra_bounds", ()))  # the join, if chosen
+        net = QuadraticQNet(
+            obs_dim, state["hidden"], action_low=lo, action_high=hi, extra_bounds=extra
+        )
         load_weights(net, state["net"], path)
         net.eval()
 

@@ -61,7 +61,13 @@ DEFAULT_ACTION_BOUNDS: tuple[float, float] = (-4.5, 2.5)
 """Ego acceleration bounds, m/s^2 (``EgoConfig.accel_bounds_mps2``)."""
 
 HEAD_A, HEAD_B, HEAD_C = 0, 1, 2
-"""Row of each head in the fused second layer."""
+"""Row of each head in the fused second layer (one action component; with m components the
+rows are A_0..A_{m-1}, B_0..B_{m-1}, C: `head_rows`)."""
+
+
+def head_rows(m: int) -> tuple[slice, slice, int]:
+    """The rows of the A heads, the B heads and the C head for m action components."""
+    return slice(0, m), slice(m, 2 * m), 2 * m
 
 
 # ----------------------------------------------------------------------------------------------
@@ -71,6 +77,11 @@ HEAD_A, HEAD_B, HEAD_C = 0, 1, 2
 
 class QuadraticQNet(nn.Module):
     """Q(s, a) = A(s) (B(s) - a)^2 + C(s) with three two-layer MLPs fused into one.
+
+    With m > 1 action components (`extra_bounds`: the acceleration, then e.g. the join of
+    `ego.join = "chosen"`) the form is separable, Q(s, a) = sum_i A_i(s) (B_i(s) - a_i)^2 +
+    C(s), with 2m + 1 heads (A_0..A_{m-1}, B_0..B_{m-1}, C); the greedy action is still B(s)
+    and the maximum C(s). With m = 1 it is the paper's network, parameter for parameter.
 
     Layer 1 is ``hidden: Linear(obs_dim, 3 * hidden)`` (rows ``[k*H:(k+1)*H]`` belong to head
     k = A, B, C), ReLU, then a block-diagonal layer 2: head k reads only its own H hidden
@@ -94,6 +105,8 @@ class QuadraticQNet(nn.Module):
         obs_dim: observation size (7 for the paper's state).
         hidden: hidden width of each of the three MLPs.
         action_low, action_high: action bounds, m/s^2.
+        extra_bounds: (low, high) of each further action component (none: the paper's 1-D
+            action).
         a_min, a_max: bounds on the curvature magnitude |A|.
         a_init: |A| at initialisation (sets the A bias); ``None`` keeps the nn.Linear init.
         generator: seeds the initialisation; ``None`` uses a fresh ``torch.Generator``
@@ -111,10 +124,13 @@ class QuadraticQNet(nn.Module):
         a_max: float = 5.0,
         a_init: float | None = 0.1,
         generator: torch.Generator | None = None,
+        extra_bounds: tuple[tuple[float, float], ...] = (),
     ) -> None:
         super().__init__()
-        if not action_low < action_high:
-            raise ValueError(f"need action_low < action_high, got {action_low}, {action_high}")
+        bounds = ((float(action_low), float(action_high)), *extra_bounds)
+        for lo, hi in bounds:
+            if not lo < hi:
+                raise ValueError(f"need action low < high, got {lo}, {hi}")
         if not 0.0 < a_min < a_max:
             raise ValueError(f"need 0 < a_min < a_max, got {a_min}, {a_max}")
         self.obs_dim = obs_dim
@@ -123,9 +139,14 @@ class QuadraticQNet(nn.Module):
         self.action_high = float(action_high)
         self.a_min = float(a_min)
         self.a_max = float(a_max)
-        self.hidden = nn.Linear(obs_dim, 3 * hidden)
-        self.head_weight = nn.Parameter(torch.empty(3, hidden))  # [3, H]
-        self.head_bias = nn.Parameter(torch.empty(3))  # [3]
+        self.extra_bounds = tuple((float(lo), float(hi)) for lo, hi in extra_bounds)
+        self.action_dim = m = len(bounds)
+        self.n_heads = n = 2 * m + 1
+        self._low = tuple(lo for lo, _ in bounds)  # the B heads' bounds (no tensors: the
+        self._span = tuple(hi - lo for lo, hi in bounds)  # parameters are the paper's keys)
+        self.hidden = nn.Linear(obs_dim, n * hidden)
+        self.head_weight = nn.Parameter(torch.empty(n, hidden))  # [2m + 1, H]
+        self.head_bias = nn.Parameter(torch.empty(n))  # [2m + 1]
         gen = generator if generator is not None else torch.Generator().manual_seed(0)
         self.reset_parameters(gen, a_init=a_init)
 
@@ -145,38 +166,44 @@ class QuadraticQNet(nn.Module):
             if not self.a_min < a_init < self.a_max:
                 raise ValueError(f"a_init must lie in (a_min, a_max), got {a_init}")
             frac = (a_init - self.a_min) / (self.a_max - self.a_min)
-            self.head_bias[HEAD_A] = math.log(frac / (1.0 - frac))
+            self.head_bias[head_rows(self.action_dim)[0]] = math.log(frac / (1.0 - frac))
 
     @property
     def action_span(self) -> float:
         return self.action_high - self.action_low
 
     def heads(self, obs: Tensor) -> Tensor:
-        """Pre-activation head outputs ``z = [z_A, z_B, z_C]``: [..., obs_dim] -> [..., 3]."""
-        h = torch.relu(self.hidden(obs))  # [..., 3H]
-        h = h.unflatten(-1, (3, self.hidden_dim))  # [..., 3, H]
-        return (h * self.head_weight).sum(-1) + self.head_bias  # [..., 3]
+        """Pre-activation head outputs ``z = [z_A, z_B, z_C]``: [..., obs_dim] -> [..., 2m + 1]."""
+        h = torch.relu(self.hidden(obs))  # [..., (2m + 1) H]
+        h = h.unflatten(-1, (self.n_heads, self.hidden_dim))  # [..., 2m + 1, H]
+        return (h * self.head_weight).sum(-1) + self.head_bias  # [..., 2m + 1]
 
     def forward(self, obs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``obs [..., obs_dim] -> (A, B, C)``, each [..., 1]; A < 0, B in (low, high)."""
+        """``obs [..., obs_dim] -> (A, B, C)``, [..., m], [..., m], [..., 1]; A < 0, B inside
+        the bounds."""
         z = self.heads(obs)
-        za, zb, zc = z.split(1, dim=-1)
-        a = -(self.a_min + (self.a_max - self.a_min) * torch.sigmoid(za))  # [..., 1]
-        b = self.action_low + self.action_span * torch.sigmoid(zb)  # [..., 1], m/s^2
-        return a, b, zc
+        m = self.action_dim
+        za, zb, zc = z[..., :m], z[..., m : 2 * m], z[..., 2 * m :]
+        a = -(self.a_min + (self.a_max - self.a_min) * torch.sigmoid(za))  # [..., m]
+        if m == 1:  # the paper's bounds as Python numbers, as always
+            return a, self.action_low + self.action_span * torch.sigmoid(zb), zc
+        low, span = (
+            torch.tensor(v, dtype=zb.dtype, device=zb.device) for v in (self._low, self._span)
+        )
+        return a, low + span * torch.sigmoid(zb), zc  # B [..., m]
 
     def q(self, obs: Tensor, action: Tensor) -> Tensor:
-        """Q(s, a): obs [..., obs_dim], action [..., 1] (m/s^2) -> [..., 1]."""
+        """Q(s, a): obs [..., obs_dim], action [..., m] (m/s^2, ...) -> [..., 1]."""
         a, b, c = self(obs)
-        return a * (b - action).pow(2) + c
+        return (a * (b - action).pow(2)).sum(-1, keepdim=True) + c
 
     def greedy(self, obs: Tensor) -> Tensor:
-        """argmax_a Q(s, a) = B(s): [..., obs_dim] -> [..., 1], m/s^2, inside the bounds."""
+        """argmax_a Q(s, a) = B(s): [..., obs_dim] -> [..., m], inside the bounds."""
         return self(obs)[1]
 
     def max_value(self, obs: Tensor) -> Tensor:
         """max over the bounded action set of Q(s, a) = Q(s, B(s)) = C(s): [..., 1]."""
-        return self.heads(obs)[..., HEAD_C:]
+        return self.heads(obs)[..., 2 * self.action_dim :]
 
 
 def _get(td: TensorDictBase, key: NestedKey) -> Tensor:
@@ -218,7 +245,7 @@ class QuadraticQLoss(LossModule):
     ``terminated`` are read under ``"next"``; the next observation is
     ``("next", observation)``.
 
-    * ``observation`` [B, obs_dim], ``action`` [B, 1] (m/s^2), ``("next", "reward")`` [B, 1],
+    * ``observation`` [B, obs_dim], ``action`` [B, m] (m/s^2, ...), ``("next", "reward")`` [B, 1],
       ``("next", "terminated")`` [B, 1] bool, ``("next", "observation")`` [B, obs_dim].
     * Writes ``|TD error|`` [B, 1] (detached) into the input under ``priority`` ("td_error").
 
@@ -329,9 +356,9 @@ class QuadraticQLoss(LossModule):
         obs = _get(tensordict, k.observation)
         action = _get(tensordict, k.action)
         with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            a, b, c = self.value_network(obs)  # [B, 1] each
+            a, b, c = self.value_network(obs)  # [B, m], [B, m], [B, 1]
         action = action.reshape(b.shape).to(b.dtype)
-        pred = a * (b - action).pow(2) + c  # [B, 1]
+        pred = (a * (b - action).pow(2)).sum(-1, keepdim=True) + c  # [B, 1]
         target = self.td_target(tensordict)  # [B, 1]
         delta = pred - target
         weights = self._maybe_get_priority_weight(tensordict)
@@ -380,13 +407,14 @@ def noisy_greedy_action(
     sigma: float,
     generator: torch.Generator,
     *,
-    low: float = DEFAULT_ACTION_BOUNDS[0],
-    high: float = DEFAULT_ACTION_BOUNDS[1],
+    low: float | tuple[float, ...] = DEFAULT_ACTION_BOUNDS[0],
+    high: float | tuple[float, ...] = DEFAULT_ACTION_BOUNDS[1],
 ) -> Tensor:
     """``clip(greedy + sigma * N(0, 1), low, high)``, noise drawn from ``generator``.
 
-    ``greedy_action`` [..., 1] m/s^2. The noise is drawn on the generator's device and moved
-    to the action's, so a CPU generator draws the same noise for a policy on any device.
+    ``greedy_action`` [..., m] (m/s^2, ...); `low`, `high` numbers, or one per component. The
+    noise is drawn on the generator's device and moved to the action's, so a CPU generator
+    draws the same noise for a policy on any device.
     """
     noise = torch.randn(
         greedy_action.shape,
@@ -394,7 +422,11 @@ def noisy_greedy_action(
         device=generator.device,
         dtype=greedy_action.dtype,
     )
-    return (greedy_action + sigma * noise.to(greedy_action.device)).clamp(low, high)
+    noisy = greedy_action + sigma * noise.to(greedy_action.device)
+    if isinstance(low, tuple):  # one bound per component
+        as_t = functools.partial(torch.tensor, dtype=noisy.dtype, device=noisy.device)
+        return torch.clamp(noisy, as_t(low), as_t(high))
+    return noisy.clamp(low, high)
 
 
 @dataclass
@@ -408,15 +440,16 @@ class GaussianExploration:
     sigma_start: float = 1.0
     sigma_end: float = 0.1
     decay_steps: int = 1_000_000
-    low: float = DEFAULT_ACTION_BOUNDS[0]
-    high: float = DEFAULT_ACTION_BOUNDS[1]
+    low: float | tuple[float, ...] = DEFAULT_ACTION_BOUNDS[0]
+    high: float | tuple[float, ...] = DEFAULT_ACTION_BOUNDS[1]
+    """Numbers, or one per action component."""
 
     def sigma(self, step: int) -> float:
         frac = min(max(step, 0) / max(self.decay_steps, 1), 1.0)
         return self.sigma_start + (self.sigma_end - self.sigma_start) * frac
 
     def __call__(self, greedy_action: Tensor, step: int, generator: torch.Generator) -> Tensor:
-        """[..., 1] greedy action -> [..., 1] noisy action inside [low, high]."""
+        """[..., m] greedy action -> [..., m] noisy action inside [low, high]."""
         return noisy_greedy_action(
             greedy_action, self.sigma(step), generator, low=self.low, high=self.high
         )
@@ -436,6 +469,7 @@ class TransitionReplay:
     Args:
         capacity: number of transitions kept (oldest overwritten first).
         obs_dim: observation size.
+        action_dim: action components (the action takes that many columns).
     """
 
     def __init__(
@@ -445,10 +479,12 @@ class TransitionReplay:
         *,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
+        action_dim: int = 1,
     ) -> None:
         self.capacity = int(capacity)
         self.obs_dim = int(obs_dim)
-        self.row_dim = 2 * self.obs_dim + 3
+        self.action_dim = int(action_dim)
+        self.row_dim = 2 * self.obs_dim + self.action_dim + 2
         self.storage = torch.zeros(self.capacity, self.row_dim, device=device, dtype=dtype)
         self._cursor = 0
         self._size = 0
@@ -465,7 +501,7 @@ class TransitionReplay:
         return torch.cat(
             [
                 obs.reshape(n, self.obs_dim).to(dt),
-                action.reshape(n, 1).to(dt),
+                action.reshape(n, self.action_dim).to(dt),
                 reward.reshape(n, 1).to(dt),
                 terminated.reshape(n, 1).to(dt),
                 next_obs.reshape(n, self.obs_dim).to(dt),
@@ -516,23 +552,27 @@ class TransitionReplay:
 
     def to_tensordict(self, rows: Tensor, keys: QuadraticQLoss._AcceptedKeys | None = None):
         """Packed rows [..., 2d + 3] -> TensorDict with the :class:`QuadraticQLoss` layout."""
-        return unpack_rows(rows, self.obs_dim, keys)
+        return unpack_rows(rows, self.obs_dim, keys, self.action_dim)
 
 
 def unpack_rows(
-    rows: Tensor, obs_dim: int, keys: QuadraticQLoss._AcceptedKeys | None = None
+    rows: Tensor,
+    obs_dim: int,
+    keys: QuadraticQLoss._AcceptedKeys | None = None,
+    action_dim: int = 1,
 ) -> TensorDict:
-    """Packed transitions ``[obs | action | reward | terminated | next_obs]`` [..., 2d + 3] ->
-    TensorDict with the :class:`QuadraticQLoss` layout (torchrl conventions)."""
+    """Packed transitions ``[obs | action | reward | terminated | next_obs]`` [..., 2d + m + 2]
+    (m = `action_dim` action components) -> TensorDict with the :class:`QuadraticQLoss` layout
+    (torchrl conventions)."""
     k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
-    d = obs_dim
+    d, m = obs_dim, action_dim
     return TensorDict(
         {
             k.observation: rows[..., :d],
-            k.action: rows[..., d : d + 1],
-            ("next", k.reward): rows[..., d + 1 : d + 2],
-            ("next", k.terminated): rows[..., d + 2 : d + 3] > 0.5,
-            ("next", k.observation): rows[..., d + 3 :],
+            k.action: rows[..., d : d + m],
+            ("next", k.reward): rows[..., d + m : d + m + 1],
+            ("next", k.terminated): rows[..., d + m + 1 : d + m + 2] > 0.5,
+            ("next", k.observation): rows[..., d + m + 2 :],
         },
         batch_size=rows.shape[:-1],
     )
@@ -553,29 +593,51 @@ class FastSpec:
     beta1: float
     beta2: float
     eps: float
+    extra: tuple[tuple[float, float], ...] = ()
+    """(low, span) of each action component after the first (`QuadraticQNet.extra_bounds`)."""
+
+    @property
+    def action_dim(self) -> int:
+        return 1 + len(self.extra)
 
 
-def param_layout(obs_dim: int, hidden: int) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
+def param_layout(
+    obs_dim: int, hidden: int, action_dim: int = 1
+) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
     """Order and shapes of the :class:`QuadraticQNet` parameters in the flat buffers."""
-    h3 = 3 * hidden
+    n = 2 * action_dim + 1
     return [
-        (("hidden", "weight"), (h3, obs_dim)),
-        (("hidden", "bias"), (h3,)),
-        (("head_weight",), (3, hidden)),
-        (("head_bias",), (3,)),
+        (("hidden", "weight"), (n * hidden, obs_dim)),
+        (("hidden", "bias"), (n * hidden,)),
+        (("head_weight",), (n, hidden)),
+        (("head_bias",), (n,)),
     ]
 
 
-def unflatten(flat: Tensor, obs_dim: int, hidden: int) -> list[Tensor]:
-    """Flat parameters [..., P] -> views w1 [..., 3H, d], b1 [..., 3H], w2 [..., 3, H],
-    b2 [..., 3] (the leading dimensions, e.g. seeds, kept)."""
+def unflatten(flat: Tensor, obs_dim: int, hidden: int, action_dim: int = 1) -> list[Tensor]:
+    """Flat parameters [..., P] -> views w1 [..., nH, d], b1 [..., nH], w2 [..., n, H],
+    b2 [..., n] with n = 2m + 1 heads (the leading dimensions, e.g. seeds, kept)."""
     out, o = [], 0
     lead = flat.shape[:-1]
-    for _, shape in param_layout(obs_dim, hidden):
+    for _, shape in param_layout(obs_dim, hidden, action_dim):
         n = math.prod(shape)
         out.append(flat[..., o : o + n].view(*lead, *shape))
         o += n
     return out
+
+
+def _component_bounds(spec: FastSpec, rows: Tensor) -> tuple[Tensor | float, Tensor | float]:
+    """The B heads' (low, span): Python numbers for one action component (the paper's), else
+    [m] tensors."""
+    if not spec.extra:
+        return spec.low, spec.span
+    lows = (spec.low, *(lo for lo, _ in spec.extra))
+    spans = (spec.span, *(sp for _, sp in spec.extra))
+
+    def as_tensor(v: tuple[float, ...]) -> Tensor:
+        return torch.tensor(v, dtype=rows.dtype, device=rows.device)
+
+    return as_tensor(lows), as_tensor(spans)
 
 
 def fast_chunk(
@@ -587,7 +649,8 @@ def fast_chunk(
     adam_scalars: Tensor,
     rows: Tensor,
 ) -> Tensor:
-    """k sequential TD(0) + Adam updates on packed minibatches ``rows`` [k, B, 2d + 3].
+    """k sequential TD(0) + Adam updates on packed minibatches ``rows`` [k, B, 2d + m + 2]
+    (m action components: `FastSpec.action_dim`).
 
     ``flat``/``exp_avg``/``exp_avg_sq`` [P] are updated in place; ``target_flat`` [P] is read
     only (the target is fixed within a chunk, so all k targets come from one matmul).
@@ -595,51 +658,53 @@ def fast_chunk(
     double precision like non-capturable ``torch.optim.Adam``. Gradients are written by hand
     (checked against autograd of :class:`QuadraticQLoss` in the tests). Returns losses [k].
     """
-    d, hd = spec.obs_dim, spec.hidden
+    d, hd, m = spec.obs_dim, spec.hidden, spec.action_dim
+    n, c = 2 * m + 1, 2 * m  # heads A_0..A_{m-1}, B_0..B_{m-1}, C; the C row
     k, bsz = rows.shape[0], rows.shape[1]
     obs = rows[..., :d]  # [k, B, d]
-    act = rows[..., d]  # [k, B]
-    rew = rows[..., d + 1]  # [k, B]
-    not_term = 1.0 - rows[..., d + 2]  # [k, B]
-    next_obs = rows[..., d + 3 :]  # [k, B, d]
+    act = rows[..., d : d + m]  # [k, B, m]
+    rew = rows[..., d + m]  # [k, B]
+    not_term = 1.0 - rows[..., d + m + 1]  # [k, B]
+    next_obs = rows[..., d + m + 2 :]  # [k, B, d]
+    low, span = _component_bounds(spec, rows)
 
     # Target: max_a' Q_target(s', a') = C_target(s'); only the C head is evaluated.
-    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd)
-    c_sl = slice(HEAD_C * hd, (HEAD_C + 1) * hd)
+    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, m)
+    c_sl = slice(c * hd, (c + 1) * hd)
     h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, H]
-    v_next = torch.matmul(h_next, tw2[HEAD_C]) + tb2[HEAD_C]  # [k, B]
+    v_next = torch.matmul(h_next, tw2[c]) + tb2[c]  # [k, B]
     y = rew + spec.gamma * not_term * v_next  # [k, B]
 
-    w1, b1, w2, b2 = unflatten(flat, d, hd)
+    w1, b1, w2, b2 = unflatten(flat, d, hd, m)
     losses = []
     for i in range(k):
         x = obs[i]  # [B, d]
-        a = act[i]  # [B]
-        pre = torch.addmm(b1, x, w1.t())  # [B, 3H]
-        h = torch.relu(pre).view(bsz, 3, hd)  # [B, 3, H]
-        z = (h * w2).sum(-1) + b2  # [B, 3]
-        s_a = torch.sigmoid(z[:, HEAD_A])
-        s_b = torch.sigmoid(z[:, HEAD_B])
-        big_a = -(spec.a_min + spec.a_span * s_a)  # [B]
-        diff = spec.low + spec.span * s_b - a  # B(s) - a, [B]
-        q = big_a * diff * diff + z[:, HEAD_C]  # [B]
+        a = act[i]  # [B, m]
+        pre = torch.addmm(b1, x, w1.t())  # [B, nH]
+        h = torch.relu(pre).view(bsz, n, hd)  # [B, n, H]
+        z = (h * w2).sum(-1) + b2  # [B, n]
+        s_a = torch.sigmoid(z[:, :m])  # [B, m]
+        s_b = torch.sigmoid(z[:, m:c])  # [B, m]
+        big_a = -(spec.a_min + spec.a_span * s_a)  # [B, m]
+        diff = low + span * s_b - a  # B(s) - a, [B, m]
+        q = (big_a * diff * diff).sum(-1) + z[:, c]  # [B]
         delta = q - y[i]
         losses.append((delta * delta).mean())
         # Backward of mean(delta^2) by hand.
-        g = delta * (2.0 / bsz)  # dL/dq [B]
-        dz = torch.stack(
+        g = (delta * (2.0 / bsz)).unsqueeze(-1)  # dL/dq [B, 1]
+        dz = torch.cat(
             [
                 g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
-                g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b),
+                g * 2.0 * big_a * diff * span * s_b * (1.0 - s_b),
                 g,
             ],
             dim=-1,
-        )  # [B, 3]
-        dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [3, H]
-        db2 = dz.sum(0)  # [3]
-        dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, 3 * hd), 0.0)  # [B, 3H]
-        dw1_t = torch.mm(x.t(), dpre)  # [d, 3H]; 2-3x faster than mm(dpre.t(), x) here
-        db1 = dpre.sum(0)  # [3H]
+        )  # [B, n]
+        dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [n, H]
+        db2 = dz.sum(0)  # [n]
+        dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, n * hd), 0.0)  # [B, nH]
+        dw1_t = torch.mm(x.t(), dpre)  # [d, nH]; 2-3x faster than mm(dpre.t(), x) here
+        db1 = dpre.sum(0)  # [nH]
         grad = torch.cat([dw1_t.t().reshape(-1), db1, dw2.reshape(-1), db2])  # [P]
         # Adam (torch.optim.Adam semantics: no weight decay, no amsgrad).
         exp_avg.lerp_(grad, 1.0 - spec.beta1)
@@ -747,6 +812,7 @@ class FastQuadQUpdater:
             beta1=self.betas[0],
             beta2=self.betas[1],
             eps=float(eps),
+            extra=tuple((lo, hi - lo) for lo, hi in net.extra_bounds),
         )
         # This object owns the target updates: silence torchrl's "no updater" warning.
         loss._has_update_associated["value_network"] = True
@@ -766,14 +832,16 @@ class FastQuadQUpdater:
         """Copy ``params`` into one flat buffer [P] (``flat``, e.g. a row of S seeds' stacked
         buffer, or a new one) and re-point each tensor to a view of it."""
         s = self.spec
-        layout = param_layout(s.obs_dim, s.hidden)
+        layout = param_layout(s.obs_dim, s.hidden, s.action_dim)
         tensors = [params.get(key) for key, _ in layout]
         for t, (key, shape) in zip(tensors, layout, strict=True):
             if tuple(t.shape) != shape:
                 raise ValueError(f"parameter {key} has shape {tuple(t.shape)}, expected {shape}")
         values = torch.cat([t.detach().reshape(-1) for t in tensors])
         flat = values if flat is None else flat.copy_(values)
-        for t, view in zip(tensors, unflatten(flat, s.obs_dim, s.hidden), strict=True):
+        for t, view in zip(
+            tensors, unflatten(flat, s.obs_dim, s.hidden, s.action_dim), strict=True
+        ):
             t.data = view
         return flat
 

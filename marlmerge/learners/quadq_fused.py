@@ -125,6 +125,8 @@ class FusedQuadQUpdates:
         specs = {u.spec for u in updaters}
         if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
+        if next(iter(specs)).action_dim != 1:
+            raise ValueError("fused updates of several seeds take one action component")
         self.updaters = list(updaters)
         self.k = self.updaters[0].k
         us = self.updaters

@@ -30,6 +30,8 @@ class QuadQLearner(Learner):
     Args:
         obs_dim: observation size; hidden: width of the A, B, C networks.
         low, high: action bounds, m/s^2 (B is squashed strictly inside them).
+        extra_bounds: (low, high) of each further action component (the join of
+            `ego.join = "chosen"`); the network then has one A and one B head per component.
         gamma, lr, target_update_period: the paper's Q-learning settings.
         exploration: the Gaussian noise schedule of the collector's actions.
         update_path: "fast" (hand-written gradients and Adam), "compiled" (the same, compiled)
@@ -60,11 +62,15 @@ class QuadQLearner(Learner):
         sample_generator: torch.Generator,
         init_weights: Mapping[str, Tensor] | None = None,
         device: torch.device | str = "cpu",
+        extra_bounds: tuple[tuple[float, float], ...] = (),
     ) -> None:
         init = torch.Generator().manual_seed(seed)
         self.obs_dim, self.hidden = obs_dim, hidden
         self.device = torch.device(device)
-        self.net = QuadraticQNet(obs_dim, hidden, action_low=low, action_high=high, generator=init)
+        self.net = QuadraticQNet(
+            obs_dim, hidden, action_low=low, action_high=high, generator=init,
+            extra_bounds=extra_bounds,
+        )  # fmt: skip
         if init_weights is not None:  # before the loss module copies them into its target
             self.net.load_state_dict(init_weights)
         self.net.to(self.device)  # before the loss copies it and the fast path aliases it
@@ -105,7 +111,7 @@ class QuadQLearner(Learner):
 
     @torch.no_grad()
     def act(self, obs: Tensor, sim_step: int, generator: torch.Generator | None) -> dict:
-        action = self.net.greedy(obs)  # [B, 1]
+        action = self.net.greedy(obs)  # [B, m]
         if generator is not None:
             action = self.exploration(action, sim_step, generator)
         return {"action": action}
@@ -125,7 +131,8 @@ class QuadQLearner(Learner):
                 losses.append(self.fast.step(self.sample_chunk(replay, batch_size)))
             return torch.cat(losses) if losses else torch.empty(0)
         for _ in range(owed):
-            out = self.loss_module(unpack_rows(sample_uniform(replay, batch_size), self.obs_dim))
+            rows = sample_uniform(replay, batch_size)
+            out = self.loss_module(unpack_rows(rows, self.obs_dim, action_dim=self.net.action_dim))
             self.optimizer.zero_grad()
             out["loss_value"].backward()
             self.optimizer.step()
@@ -159,7 +166,10 @@ class QuadQLearner(Learner):
     def policy_state(self) -> dict[str, Any]:
         # copies: the weights are views of the fast path's flat buffer (of S seeds' stacked
         # buffer in a vectorised run), which a policy file must not carry
-        return {
+        state = {
             "net": {k: v.clone() for k, v in self.net.state_dict().items()},
             "hidden": self.hidden,
         }
+        if self.net.extra_bounds:
+            state["extra_bounds"] = [list(b) for b in self.net.extra_bounds]
+        return state

@@ -39,7 +39,7 @@ from marlmerge.learners.loading import make_learner as make_peer_learner
 from marlmerge.learners.quadq import GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.sim import OUTCOME_SUCCESS
-from marlmerge.sim.observation import EGO_FEATURES
+from marlmerge.sim.action import JOIN_BOUNDS
 from marlmerge.training.checkpoint import open_checkpoint
 from marlmerge.training.levels import LevelReplay
 from marlmerge.training.logs import (
@@ -120,6 +120,8 @@ def make_learner(
     if cfg.algorithm != "quadq":  # networks from cfg.seed, target smoothing (td3) cfg.seed + 3
         return make_peer_learner(cfg, lo, hi, obs_dim)
     decay = max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1)
+    extra = (JOIN_BOUNDS,) if scen.ego.join == "chosen" else ()  # the join component
+    noise_lo, noise_hi = (lo, hi) if not extra else ((lo, extra[0][0]), (hi, extra[0][1]))
     return QuadQLearner(
         obs_dim,
         cfg.hidden,
@@ -128,7 +130,8 @@ def make_learner(
         gamma=cfg.gamma,
         lr=cfg.lr,
         target_update_period=cfg.target_update_period,
-        exploration=GaussianExploration(cfg.sigma_start, cfg.sigma_end, decay, lo, hi),
+        exploration=GaussianExploration(cfg.sigma_start, cfg.sigma_end, decay, noise_lo, noise_hi),
+        extra_bounds=extra,
         update_path=cfg.update_path,
         updates_per_call=cfg.updates_per_call,
         seed=cfg.seed,
@@ -247,7 +250,7 @@ def train(
 
     env = make_ramp_env(cfg, scen) if flowing else make_env(cfg)
     scen, k = env.cfg, env.cfg.sim.action_repeat
-    ego = make_ego_group(cfg, scen, len(EGO_FEATURES) if flowing else env.core.obs_size)
+    ego = make_ego_group(cfg, scen, len(env.core.agent_features) if flowing else env.core.obs_size)
     sim_steps = 0
     levels = None if flowing else env.core.scenario_source
     if ckpt is not None:
