@@ -193,3 +193,24 @@ def test_a_merge_where_nothing_merged_reports_undefined_values():
     assert row["merged_vph"] == 0.0 and row["ramp_delay_s"] is None
     assert row["ramp_collisions_per_1000"] is None and row["ramp_delay_s_ci95"] == (None, None)
     json.loads(json.dumps(row), parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
+
+
+def test_the_distance_terms_weigh_the_gap_joined_not_the_one_passed():
+    from marlmerge.sim.reward import EGO_TERMS
+
+    gaps = [EGO_TERMS.index("gap_front"), EGO_TERMS.index("gap_back")]
+    follower = CHOSEN.replace(**{"reward.w_back_headway": 1.0, "reward.w_back_ttc": 1.0})
+    waiting = TrafficCore(follower, batch_size=8, seed=6)
+    forced = TrafficCore(ScenarioConfig(), batch_size=8, seed=6)
+    seen = 0.0
+    for _ in range(40):  # every ego reaches the merge area beside the right lane's traffic
+        out = waiting.rollout(np.zeros(8), ego_join=np.full(8, -1.0))
+        assert np.all(out.ego_terms[:, gaps + [5, 6]] == 0.0)  # beside its gap: none
+        on_ramp = forced.vi[:, L.VI_LANE, L.EGO] == L.RAMP
+        seen += np.abs(forced.rollout(np.zeros(8)).ego_terms[on_ramp][:, gaps]).sum()
+    assert seen > 0.0  # the paper's forced join weighs the gap it is heading for
+    joined = TrafficCore(follower, batch_size=8, seed=6)
+    total = 0.0
+    for _ in range(40):
+        total += np.abs(joined.rollout(np.zeros(8), ego_join=np.ones(8)).ego_terms[:, gaps]).sum()
+    assert total > 0.0  # in the lane, its gaps count

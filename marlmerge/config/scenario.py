@@ -287,8 +287,10 @@ class RewardConfig:
     `back_ttc`:     -w_back_ttc * g(d_back, back_ttc_s * max(v_back - v, 0))   (off by default)
     `jerk`:         -w_jerk * (a - a_prev)^2, the change of the applied acceleration since the
                     previous simulator step in m/s^2, squared                  (off by default)
-    Distance terms count only inside the merge area (from `distance_active_from_m` on); the two
-    follower terms only for a gap-back vehicle within the sensing range.
+    Distance terms count only inside the merge area (from `distance_active_from_m` on) and, with
+    a chosen join (`ego.join = "chosen"`), only once the vehicle has joined the right lane (on
+    the acceleration lane it is beside its gap, not in it); the two follower terms only for a
+    gap-back vehicle within the sensing range.
     """
 
     w_accel: float = num(0.05, 0.0, MAX_WEIGHT)

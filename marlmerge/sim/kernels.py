@@ -117,7 +117,13 @@ from marlmerge.sim.layout import (
     WI_STEP_OUTCOME,
     WI_SUBSTEPS,
 )
-from marlmerge.sim.reward import add_ego_terms, add_highway_terms, ego_closeness, ego_to_blame
+from marlmerge.sim.reward import (
+    add_ego_terms,
+    add_highway_terms,
+    ego_closeness,
+    ego_to_blame,
+    merge_gaps,
+)
 from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, sensed_output
 from marlmerge.sim.step import (
     deactivate,
@@ -176,6 +182,7 @@ def _roster_step(
         same = vi[b, VI_ID, s] == roster[RO_ID, b, j]
         if flowing and same:  # a ramp agent: the ego's terms, for its own merge
             _, _, _, _, d_f, _, v_b, d_b = gap_vehicles(S, b, p, s)
+            d_f, d_b = merge_gaps(p, vi[b, VI_LANE, s] == RAMP, d_f, d_b)
             add_ego_terms(
                 p, hw_terms[:, j], b, vf[b, VF_A, s], vf[b, VF_X, s], vf[b, VF_V, s], d_f, d_b,
                 v_b, (vi[b, VI_FLAGS, s] & EV_HIT) != 0, 0.0,
@@ -335,9 +342,10 @@ def rollout_world(
             _trace_row(S, b, trace, i)
             if live:
                 ego_steps += 1
+                d_f, d_b = merge_gaps(p, vi[b, VI_LANE, EGO] == RAMP, wf[b, WF_DF], wf[b, WF_DB])
                 add_ego_terms(
                     p, ego_terms, b, wf[b, WF_EGO_CMD], vf[b, VF_X, EGO], vf[b, VF_V, EGO],
-                    wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB], ego_hit,
+                    d_f, d_b, wf[b, WF_VB], ego_hit,
                     0.0 if first else wf[b, WF_EGO_CMD] - a_prev,
                 )  # fmt: skip
             _roster_step(S, b, p, roster, hw_terms, live)

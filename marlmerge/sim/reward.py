@@ -31,6 +31,7 @@ from marlmerge.sim.layout import (
     P_I_W_HARD_BRAKE,
     P_I_W_STALL,
     P_I_W_UNSAFE,
+    P_JOIN_CHOSEN,
     P_SAFE_HEADWAY,
     P_SAFE_MIN_GAP,
     P_SENSING,
@@ -98,6 +99,17 @@ def ego_closeness(
         return 0.0, 0.0
     s0, t = params[P_SAFE_MIN_GAP], params[P_SAFE_HEADWAY]
     return proximity(d_front_m, s0 + t * v_mps), proximity(d_back_m, s0 + t * v_back_mps)
+
+
+@kernel(inline=True)
+def merge_gaps(params, on_ramp: bool, d_front_m: float, d_back_m: float) -> tuple[float, float]:  # noqa: ANN001
+    """The gaps (m) the distance terms see. With a chosen join (`ego.join = "chosen"`) a vehicle
+    still on the ramp or the acceleration lane is beside its gap, not in it: no gap vehicle (the
+    sensing range) until it joins, so the terms weigh the gap it joins, not the one it passes.
+    Otherwise (the paper's forced join) the gaps as given."""
+    if on_ramp and params[P_JOIN_CHOSEN] > 0.0:
+        return params[P_SENSING], params[P_SENSING]
+    return d_front_m, d_back_m
 
 
 @kernel
