@@ -70,7 +70,7 @@ def run_scenario(run_cfg: Any) -> ScenarioConfig:
     except ValueError as err:
         raise ValueError(f"scenario = {run_cfg.scenario!r}: {err}") from None
     algorithm = getattr(run_cfg, "algorithm", None)  # a co-training run has none
-    if scen.ego.join != "forced" and algorithm != "quadq":
+    if scen.ego.chooses_join and algorithm != "quadq":
         raise ValueError(
             f"scenario = {run_cfg.scenario!r} sets ego.join = {scen.ego.join!r}: an action of "
             "two components, which only the quadratic-Q learner (algorithm = 'quadq') takes; "

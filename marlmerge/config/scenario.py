@@ -29,10 +29,11 @@ from marlmerge.config.rules import check_values, num, positive, require
 
 MPH_TO_MPS = 0.44704
 OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel")
-RAMP_JOINS = ("forced", "when_safe")
-EGO_JOINS = ("forced", "chosen")
-"""Values of `ramp.join`."""
 """Values of `ego.observation` (the tables: `marlmerge.sim.observation.EGO_LAYOUTS`)."""
+RAMP_JOINS = ("forced", "when_safe")
+"""Values of `ramp.join`."""
+EGO_JOINS = ("forced", "chosen")
+"""Values of `ego.join`."""
 MAX_LATENCY_S = 2.0
 """`sensing.latency_s` is at most this (the core keeps that many steps of observations)."""
 MAX_WARMUP_S = 600.0
@@ -242,6 +243,11 @@ class EgoConfig:
     stops, braking as late as its bounds allow; the observation gets an `on_ramp` feature).
     With ramp flow it applies to every merging agent; a vehicle without a join command (NaN)
     joins by `ramp.join`'s rule, or by force in the paper's mode."""
+
+    @property
+    def chooses_join(self) -> bool:
+        """`join = "chosen"`: the merging vehicle's action has a join component."""
+        return self.join == "chosen"
 
 
 @dataclass(frozen=True)
@@ -608,7 +614,7 @@ def validate(cfg: ScenarioConfig) -> None:
             f"ego.join must be one of {', '.join(map(repr, EGO_JOINS))}, got {e.join!r}",
         ),
         (
-            e.join == "forced" or not e.safety_filter,
+            not e.chooses_join or not e.safety_filter,
             "ego.join = 'chosen' leaves the join to the policy; ego.safety_filter (which holds "
             "the ego behind the forced join point) must be false",
         ),

@@ -37,7 +37,7 @@ from marlmerge.sim.observation import (
     EGO_FEATURES,
     EGO_LAYOUTS,
     HIGHWAY_FEATURES,
-    ON_RAMP_FEATURE,
+    ego_layout,
 )
 
 FORMAT = "marlmerge-policy"
@@ -53,11 +53,11 @@ def feature_names(group: str, scenario: dict[str, Any] | None = None) -> list[st
     """The feature names a `group` network reads in `scenario` (a config dict; the ego's layout
     is its `ego.observation`, "paper" when absent, then `on_ramp` with `ego.join = "chosen"`)."""
     if group == "ego" and scenario is not None:
-        layout = scenario.get("ego", {}).get("observation", "paper")
+        ego = scenario.get("ego", {})
+        layout = ego.get("observation", "paper")
         if layout not in EGO_LAYOUTS:
             raise ValueError(f"unknown ego observation layout {layout!r}")
-        chosen = scenario.get("ego", {}).get("join", "forced") == "chosen"
-        return [f.name for f in EGO_LAYOUTS[layout]] + ([ON_RAMP_FEATURE.name] if chosen else [])
+        return [f.name for f in ego_layout(layout, ego.get("join") == "chosen")]
     return [f.name for f in GROUPS[group]]
 
 

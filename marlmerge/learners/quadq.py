@@ -70,6 +70,17 @@ def head_rows(m: int) -> tuple[slice, slice, int]:
     return slice(0, m), slice(m, 2 * m), 2 * m
 
 
+def b_bounds(
+    lows: tuple[float, ...], spans: tuple[float, ...], like: Tensor
+) -> tuple[Tensor | float, Tensor | float]:
+    """The B heads' (low, span), one per action component: Python numbers for the paper's one
+    component (as it always computed them), else [m] tensors of `like`'s dtype and device."""
+    if len(lows) == 1:
+        return lows[0], spans[0]
+    low, span = (torch.tensor(v, dtype=like.dtype, device=like.device) for v in (lows, spans))
+    return low, span
+
+
 # ----------------------------------------------------------------------------------------------
 # Network
 # ----------------------------------------------------------------------------------------------
@@ -182,15 +193,11 @@ class QuadraticQNet(nn.Module):
         """``obs [..., obs_dim] -> (A, B, C)``, [..., m], [..., m], [..., 1]; A < 0, B inside
         the bounds."""
         z = self.heads(obs)
-        m = self.action_dim
-        za, zb, zc = z[..., :m], z[..., m : 2 * m], z[..., 2 * m :]
+        rows_a, rows_b, c = head_rows(self.action_dim)
+        za, zb, zc = z[..., rows_a], z[..., rows_b], z[..., c : c + 1]
         a = -(self.a_min + (self.a_max - self.a_min) * torch.sigmoid(za))  # [..., m]
-        if m == 1:  # the paper's bounds as Python numbers, as always
-            return a, self.action_low + self.action_span * torch.sigmoid(zb), zc
-        low, span = (
-            torch.tensor(v, dtype=zb.dtype, device=zb.device) for v in (self._low, self._span)
-        )
-        return a, low + span * torch.sigmoid(zb), zc  # B [..., m]
+        low, span = b_bounds(self._low, self._span, zb)
+        return a, low + span * torch.sigmoid(zb), zc  # B [..., m], m/s^2 (then the join)
 
     def q(self, obs: Tensor, action: Tensor) -> Tensor:
         """Q(s, a): obs [..., obs_dim], action [..., m] (m/s^2, ...) -> [..., 1]."""
@@ -203,7 +210,8 @@ class QuadraticQNet(nn.Module):
 
     def max_value(self, obs: Tensor) -> Tensor:
         """max over the bounded action set of Q(s, a) = Q(s, B(s)) = C(s): [..., 1]."""
-        return self.heads(obs)[..., 2 * self.action_dim :]
+        c = head_rows(self.action_dim)[2]
+        return self.heads(obs)[..., c : c + 1]
 
 
 def _get(td: TensorDictBase, key: NestedKey) -> Tensor:
@@ -626,20 +634,6 @@ def unflatten(flat: Tensor, obs_dim: int, hidden: int, action_dim: int = 1) -> l
     return out
 
 
-def _component_bounds(spec: FastSpec, rows: Tensor) -> tuple[Tensor | float, Tensor | float]:
-    """The B heads' (low, span): Python numbers for one action component (the paper's), else
-    [m] tensors."""
-    if not spec.extra:
-        return spec.low, spec.span
-    lows = (spec.low, *(lo for lo, _ in spec.extra))
-    spans = (spec.span, *(sp for _, sp in spec.extra))
-
-    def as_tensor(v: tuple[float, ...]) -> Tensor:
-        return torch.tensor(v, dtype=rows.dtype, device=rows.device)
-
-    return as_tensor(lows), as_tensor(spans)
-
-
 def fast_chunk(
     spec: FastSpec,
     flat: Tensor,
@@ -659,14 +653,16 @@ def fast_chunk(
     (checked against autograd of :class:`QuadraticQLoss` in the tests). Returns losses [k].
     """
     d, hd, m = spec.obs_dim, spec.hidden, spec.action_dim
-    n, c = 2 * m + 1, 2 * m  # heads A_0..A_{m-1}, B_0..B_{m-1}, C; the C row
+    n = 2 * m + 1  # heads A_0..A_{m-1}, B_0..B_{m-1}, C
+    rows_a, rows_b, c = head_rows(m)
     k, bsz = rows.shape[0], rows.shape[1]
     obs = rows[..., :d]  # [k, B, d]
     act = rows[..., d : d + m]  # [k, B, m]
     rew = rows[..., d + m]  # [k, B]
     not_term = 1.0 - rows[..., d + m + 1]  # [k, B]
     next_obs = rows[..., d + m + 2 :]  # [k, B, d]
-    low, span = _component_bounds(spec, rows)
+    lows = (spec.low, *(lo for lo, _ in spec.extra))
+    low, span = b_bounds(lows, (spec.span, *(sp for _, sp in spec.extra)), rows)
 
     # Target: max_a' Q_target(s', a') = C_target(s'); only the C head is evaluated.
     tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, m)
@@ -683,8 +679,8 @@ def fast_chunk(
         pre = torch.addmm(b1, x, w1.t())  # [B, nH]
         h = torch.relu(pre).view(bsz, n, hd)  # [B, n, H]
         z = (h * w2).sum(-1) + b2  # [B, n]
-        s_a = torch.sigmoid(z[:, :m])  # [B, m]
-        s_b = torch.sigmoid(z[:, m:c])  # [B, m]
+        s_a = torch.sigmoid(z[:, rows_a])  # [B, m]
+        s_b = torch.sigmoid(z[:, rows_b])  # [B, m]
         big_a = -(spec.a_min + spec.a_span * s_a)  # [B, m]
         diff = low + span * s_b - a  # B(s) - a, [B, m]
         q = (big_a * diff * diff).sum(-1) + z[:, c]  # [B]

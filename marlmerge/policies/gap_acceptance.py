@@ -282,7 +282,7 @@ class GapAcceptancePolicy:
         in_lane = joined(obs_all, cfg) | (x[..., 0] >= cfg.x_overlap_m)
         accel = np.where(in_lane, a_lane, a_ramp)
         accel = np.clip(np.nan_to_num(accel, nan=0.0), lo, hi)[..., None]
-        if cfg.ego.join == "chosen":
+        if cfg.ego.chooses_join:
             accel = np.concatenate([accel, self.join_now(obs_all)[..., None]], axis=-1)
         joins = (margin >= 0.0) & arrives & (x < cfg.x_overlap_m)
         return GapDecision(accel.astype(np.float32), accept & joins.any(-1), a_cmd, joins)
@@ -331,7 +331,7 @@ class GapShield:
         critical_gap_s: float = 0.5,
         forced_gap_s: float | None = None,
     ):
-        if cfg is not None and cfg.ego.join != "forced":
+        if cfg is not None and cfg.ego.chooses_join:
             raise ValueError(
                 f"GapShield judges joins at the overlap point; ego.join = {cfg.ego.join!r} "
                 "leaves the join to the policy (use ego.join = 'forced')"

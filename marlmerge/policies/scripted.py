@@ -115,14 +115,20 @@ class IdmEgoPolicy:
         return np.clip(accel, lo, hi)[..., None].astype(np.float32)
 
 
+def past_overlap(obs: np.ndarray, cfg: ScenarioConfig) -> np.ndarray:
+    """[...] whether the ramp vehicle of each observation [..., F] is at or past the overlap
+    point, where the paper's ego is joined by force."""
+    x_m = np.asarray(obs, dtype=np.float64)[..., _E["ego_position"]] * EGO_SCALE[_E["ego_position"]]
+    return x_m >= cfg.x_overlap_m
+
+
 def joined(obs: np.ndarray, cfg: ScenarioConfig) -> np.ndarray:
     """[...] whether the ramp vehicle of each observation [..., F] is in the right lane: past
     the overlap point, or, when it chooses its join (`ego.join = "chosen"`), as its last
     feature `on_ramp` says."""
-    obs = np.asarray(obs, dtype=np.float64)
-    if cfg.ego.join == "chosen":
-        return obs[..., -1] < 0.5
-    return obs[..., _E["ego_position"]] * EGO_SCALE[_E["ego_position"]] >= cfg.x_overlap_m
+    if cfg.ego.chooses_join:
+        return np.asarray(obs)[..., -1] < 0.5
+    return past_overlap(obs, cfg)
 
 
 def with_join_at_overlap(
@@ -131,14 +137,12 @@ def with_join_at_overlap(
     """A rule that only sets the acceleration ([..., 1]) as a ramp vehicle choosing its join
     (`ego.join = "chosen"`): it joins where the paper's ego is joined by force, once it overlaps
     the right lane (join = +1 from there on, -1 before). Without a join choice: `rule` itself."""
-    if cfg.ego.join != "chosen":
+    if not cfg.ego.chooses_join:
         return rule
-    x_scale = EGO_SCALE[_E["ego_position"]]
 
     def act(obs: np.ndarray) -> np.ndarray:
         accel = np.asarray(rule(obs), dtype=np.float32)
-        x = np.asarray(obs, dtype=np.float64)[..., _E["ego_position"]] * x_scale
-        join = np.where(x >= cfg.x_overlap_m, 1.0, -1.0).astype(np.float32)
+        join = np.where(past_overlap(obs, cfg), 1.0, -1.0).astype(np.float32)
         return np.concatenate([accel, join[..., None]], axis=-1)
 
     return act

@@ -23,19 +23,24 @@ JOIN_BOUNDS = (-1.0, 1.0)
 """The join component's range (`ego.join = "chosen"`): > 0 joins."""
 
 
+def component_bounds(cfg: ScenarioConfig) -> tuple[tuple[float, float], ...]:
+    """(low, high) of each component of a ramp vehicle's action: the acceleration's
+    (`ego.accel_bounds_mps2`, m/s^2), then, with `ego.join = "chosen"`, the join's
+    (`JOIN_BOUNDS`)."""
+    accel = tuple(cfg.ego.accel_bounds_mps2)
+    return (accel, JOIN_BOUNDS) if cfg.ego.chooses_join else (accel,)
+
+
 def action_size(cfg: ScenarioConfig) -> int:
     """Components of a ramp vehicle's action: 1 (acceleration), 2 with `ego.join = "chosen"`
     (acceleration, join)."""
-    return 2 if cfg.ego.join == "chosen" else 1
+    return len(component_bounds(cfg))
 
 
 def action_bounds(cfg: ScenarioConfig) -> tuple[np.ndarray, np.ndarray]:
-    """A ramp vehicle's action bounds, (low, high) [action_size] float32: the acceleration's
-    (`ego.accel_bounds_mps2`), then the join's (`JOIN_BOUNDS`)."""
-    lo, hi = cfg.ego.accel_bounds_mps2
-    low, high = [lo, JOIN_BOUNDS[0]], [hi, JOIN_BOUNDS[1]]
-    m = action_size(cfg)
-    return np.array(low[:m], np.float32), np.array(high[:m], np.float32)
+    """A ramp vehicle's action bounds, (low, high) [action_size] float32 (`component_bounds`)."""
+    low, high = zip(*component_bounds(cfg), strict=True)
+    return np.array(low, np.float32), np.array(high, np.float32)
 
 
 def split_actions(a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

@@ -31,10 +31,10 @@ import numpy as np
 from marlmerge.config import ScenarioConfig, latency_steps
 from marlmerge.sim.observation import (
     ACCEL_SCALE_MPS2,
-    EGO_LAYOUTS,
     POSITION_SCALE_M,
     SPEED_SCALE_MPS,
     TIME_SCALE_S,
+    ego_features,
 )
 
 # NumPy integers rather than Python ints: Numba compiles a separate copy of a function for every
@@ -456,11 +456,9 @@ def pack_params(cfg: ScenarioConfig) -> np.ndarray:
 
 
 def on_ramp_column(cfg: ScenarioConfig) -> int:
-    """The ego observation's column of `on_ramp` (`ego.join = "chosen"`: after its layout's
-    other features); 0: none."""
-    if cfg.ego.join != "chosen":
-        return 0
-    return len(EGO_LAYOUTS[cfg.ego.observation])
+    """The ego observation's column of `on_ramp` (`ego.join = "chosen"`: the last one of
+    `ego_features`); 0: none."""
+    return len(ego_features(cfg)) - 1 if cfg.ego.chooses_join else 0
 
 
 def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
@@ -492,6 +490,6 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "ramp_flow": float(cfg.ramp.flowing),
         "ramp_join_when_safe": float(cfg.ramp.join == "when_safe"),
         "x_zone_start_m": cfg.road.x_zone_start_m,
-        "ego_join_chosen": float(e.join == "chosen"),
+        "ego_join_chosen": float(e.chooses_join),
         "obs_on_ramp_col": float(on_ramp_column(cfg)),
     }

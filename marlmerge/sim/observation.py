@@ -188,20 +188,22 @@ ON_RAMP_FEATURE = Feature(
 )
 
 
-def _join_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
-    return (ON_RAMP_FEATURE,) if cfg.ego.join == "chosen" else ()
+def ego_layout(observation: str, chooses_join: bool = False) -> tuple[Feature, ...]:
+    """The features of the ego layout named `observation` (`EGO_LAYOUTS`), then `on_ramp` when
+    the vehicle chooses its join."""
+    return EGO_LAYOUTS[observation] + ((ON_RAMP_FEATURE,) if chooses_join else ())
 
 
 def ego_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
     """The ego's observation layout of a scenario (`ego.observation`, then `on_ramp` with
     `ego.join = "chosen"`)."""
-    return EGO_LAYOUTS[cfg.ego.observation] + _join_features(cfg)
+    return ego_layout(cfg.ego.observation, cfg.ego.chooses_join)
 
 
 def ramp_agent_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
     """What a ramp-flow agent sees: the paper's seven features (perfect sensing), then
     `on_ramp` with `ego.join = "chosen"`."""
-    return EGO_FEATURES + _join_features(cfg)
+    return ego_layout("paper", cfg.ego.chooses_join)
 
 
 def ego_obs_size(cfg: ScenarioConfig) -> int:

@@ -90,7 +90,7 @@ def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
             f"{scen.ramp.flow_vph}); train its seeds one by one (marlmerge train --set seed=S) "
             "or with marlmerge sweep"
         )
-    if scen.ego.join != "forced":
+    if scen.ego.chooses_join:
         raise ValueError(
             f"--seeds: scenario {cfg.scenario!r} sets ego.join = {scen.ego.join!r} (two action "
             "components), which the seeds' fused update does not take; train its seeds one by "

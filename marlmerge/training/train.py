@@ -39,7 +39,7 @@ from marlmerge.learners.loading import make_learner as make_peer_learner
 from marlmerge.learners.quadq import GaussianExploration
 from marlmerge.learners.quadq_learner import QuadQLearner
 from marlmerge.sim import OUTCOME_SUCCESS
-from marlmerge.sim.action import JOIN_BOUNDS
+from marlmerge.sim.action import component_bounds
 from marlmerge.training.checkpoint import open_checkpoint
 from marlmerge.training.levels import LevelReplay
 from marlmerge.training.logs import (
@@ -120,8 +120,8 @@ def make_learner(
     if cfg.algorithm != "quadq":  # networks from cfg.seed, target smoothing (td3) cfg.seed + 3
         return make_peer_learner(cfg, lo, hi, obs_dim)
     decay = max(int(cfg.sigma_decay_fraction * cfg.total_sim_steps), 1)
-    extra = (JOIN_BOUNDS,) if scen.ego.join == "chosen" else ()  # the join component
-    noise_lo, noise_hi = (lo, hi) if not extra else ((lo, extra[0][0]), (hi, extra[0][1]))
+    bounds = component_bounds(scen)  # the acceleration's, then the join's if chosen
+    noise_lo, noise_hi = (lo, hi) if len(bounds) == 1 else tuple(zip(*bounds, strict=True))
     return QuadQLearner(
         obs_dim,
         cfg.hidden,
@@ -131,7 +131,7 @@ def make_learner(
         lr=cfg.lr,
         target_update_period=cfg.target_update_period,
         exploration=GaussianExploration(cfg.sigma_start, cfg.sigma_end, decay, noise_lo, noise_hi),
-        extra_bounds=extra,
+        extra_bounds=bounds[1:],
         update_path=cfg.update_path,
         updates_per_call=cfg.updates_per_call,
         seed=cfg.seed,
