@@ -2,7 +2,8 @@
 
 For each mainline demand and each merging variant (a ramp policy and a `ramp.join` mode), the ramp
 demand rises and `marlmerge.evaluation.ramp_flow.run_ramp_flow` measures merged flow, ramp delay,
-collisions and the mainline's speed through the merge zone. Merged flow follows the demand until
+collisions, the mainline's speed through the merge zone, where it changes lanes and how hard it
+brakes. Merged flow follows the demand until
 the merge saturates; the curve's plateau is the merge's capacity at that mainline demand.
 
     python benchmarks/ramp_capacity.py [--hours 1] [--worlds 4] [--out docs/ramp_flow]
@@ -70,12 +71,16 @@ def _table(rows: list[dict], args: argparse.Namespace) -> str:
         "",
         f"Written by `python benchmarks/ramp_capacity.py --hours {args.hours:g} --worlds "
         f"{args.worlds}` ({args.worlds} worlds x {args.hours:g} h per row after 300 s of "
-        "settling; merged flow with its 95 % interval over worlds).",
+        "settling; merged flow with its 95 % interval over worlds). Lane changes and braking: "
+        "the mainline, one sample per vehicle and control step "
+        "(`marlmerge.evaluation.merge_metrics`); braking around the merge; a cut-in's follower "
+        "is watched for 3 s.",
         "",
         "| variant | mainline veh/h/lane | ramp demand veh/h | merged veh/h | ramp delay s "
         "| longest ramp queue | ramp collisions | per 1,000 merged "
-        "| mainline speed upstream -> zone m/s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| mainline speed upstream -> zone m/s | mainline lane changes at the entrance % "
+        "| braking > b % | hardest braking m/s² | cut-ins followed by braking > b |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lo, hi = r["merged_vph_ci95"]
@@ -84,9 +89,15 @@ def _table(rows: list[dict], args: argparse.Namespace) -> str:
             f"{r['ramp_demand_vph']:g} | {r['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] | "
             f"{r['ramp_delay_s']:.1f} | {r['ramp_max_queue']} | {r['ramp_collisions']} | "
             f"{r['ramp_collisions_per_1000']:.2f} | {r['mainline_speed_upstream_mps']:.1f} -> "
-            f"{r['mainline_speed_merge_mps']:.1f} |"
+            f"{r['mainline_speed_merge_mps']:.1f} | {_percent(r['lane_change_shares']['entrance'])}"
+            f" | {100 * r['braking_over_b_share']:.2f} | {r['hardest_braking_mps2']:.1f} | "
+            f"{r['cut_ins_braking_over_b']} of {r['cut_ins']} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _percent(share: float | None) -> str:
+    return "-" if share is None else f"{100 * share:.0f}"
 
 
 def _figure(rows: list[dict], path: Path) -> None:

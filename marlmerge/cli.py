@@ -201,10 +201,17 @@ def _print_evaluation(ev: dict) -> None:
         if ev["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
             print(f"{head}no ramp vehicle merged, {ev['ramp_collisions']} collisions")
             return
+        entrance = (ev.get("lane_change_shares") or {}).get("entrance")
+        share = "-" if entrance is None else f"{100 * entrance:.0f} %"
         print(
             f"{head}merged {ev['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
-            f"{ev['ramp_delay_s']:.1f} s, {ev['ramp_collisions']} collisions "
-            f"({ev['ramp_collisions_per_1000']:.2f} per 1,000 merged)"
+            f"{ev['ramp_delay_s']:.1f} s, longest queue {ev['ramp_max_queue']}, "
+            f"{ev['ramp_collisions']} collisions ({ev['ramp_collisions_per_1000']:.2f} per 1,000 "
+            f"merged); mainline {ev['mainline_speed_upstream_mps']:.1f} -> "
+            f"{ev['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
+            f"{ev['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), "
+            f"braking > b in {100 * ev['braking_over_b_share']:.2f} % of samples (hardest "
+            f"{ev['hardest_braking_mps2']:.1f} m/s^2)"
         )
         return
 
@@ -247,6 +254,18 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     from marlmerge.evaluation.rollout import run_episodes, summarize
 
     policy, scen = policy_for_evaluation(args.policy, scen)
+    if scen.ramp.flowing:  # the merge as a whole: every ramp vehicle driven by the policy
+        if args.highway or args.fairness:
+            raise ValueError(
+                f"--highway / --fairness: scenario {scen.name!r} runs ramp flow "
+                f"(ramp.flow_vph = {scen.ramp.flow_vph:g}), whose mainline is scripted"
+            )
+        from marlmerge.evaluation.ramp_flow import evaluate_ramp_flow
+
+        ev = evaluate_ramp_flow(scen, args.policy, args.episodes, args.seed, args.worlds)
+        _print_evaluation(ev)
+        print(json.dumps(ev))
+        return 0
     highway = None
     if args.highway:
         from marlmerge.learners.highway import load_highway_policy
@@ -289,6 +308,8 @@ def grid_cmd(args: argparse.Namespace) -> int:
         workers=args.workers,
         address=args.address,
         estimator=args.estimator,
+        ramp_hours=args.ramp_hours,
+        ramp_worlds=args.ramp_worlds,
     )
     print(
         f"{len(result.rows)} episodes; {result.cells_run} cells run on the {result.backend} "
@@ -296,6 +317,9 @@ def grid_cmd(args: argparse.Namespace) -> int:
         f"{result.cells_reused} cells reused from {result.out_dir}/cells"
     )
     print((result.out_dir / "summary.md").read_text())
+    if not result.rows:  # ramp-flow conditions only
+        print(f"wrote {result.out_dir}/summary.md")
+        return 0
     print(
         f"wrote {result.out_dir}/episodes.csv, summary.md, heatmap_success.png, "
         "heatmap_collision.png"
@@ -354,7 +378,7 @@ def rampflow_cmd(args: argparse.Namespace) -> int:
     """Ramp flow: every ramp vehicle driven by one policy, the merge measured as a whole, one
     row per ramp demand; the last line printed is the JSON of all rows."""
     from marlmerge.config.presets import resolve_config
-    from marlmerge.evaluation.ramp_flow import run_ramp_flow
+    from marlmerge.evaluation.ramp_flow import merge_line, run_ramp_flow
 
     if args.scenario is not None:
         base = resolve_config(args.scenario)
@@ -375,12 +399,9 @@ def rampflow_cmd(args: argparse.Namespace) -> int:
     for vph in demands:
         cfg = base.replace(**{"ramp.flow_vph": vph})
         r = run_ramp_flow(cfg, args.policy, args.hours, args.worlds, args.seed, args.skip)
-        lo, hi = r.merged_vph_ci95
         print(
-            f"ramp {vph:g} veh/h, mainline {r.mainline_demand_vph_per_lane:g} veh/h/lane: merged "
-            f"{r.merged_vph:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay {r.ramp_delay_s:.1f} s, "
-            f"longest queue {r.ramp_max_queue}, {r.ramp_collisions} collisions, mainline "
-            f"{r.mainline_speed_upstream_mps:.1f} -> {r.mainline_speed_merge_mps:.1f} m/s"
+            f"ramp {vph:g} veh/h, mainline {r.mainline_demand_vph_per_lane:g} veh/h/lane: "
+            + merge_line(r)
         )
         rows.append(r.to_dict())
     if args.out:
@@ -490,7 +511,8 @@ def _validate_merge(args: argparse.Namespace, use_sumo: bool) -> int:
         r = result[name]
         print(
             f"{name}: merged flow within 10 % of SUMO in {r['merged_within_10pct']} cells, "
-            f"ramp delay in {r['delay_within_10pct']}"
+            f"ramp delay in {r['delay_within_10pct']}, the entrance's share of the lane changes "
+            f"within 2x in {r['entrance_share_within_2x']}"
         )
     print(f"wrote {out}/README.md")
     return 0 if result["all_targets_met"] else 1
@@ -564,7 +586,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="hold, idm, gap, a run folder / policy.pt file, or one policy as the grid names it "
         "(gap@shield, quadq@shield:RUN)",
     )
-    e.add_argument("--episodes", type=_at_least(1), default=200)
+    e.add_argument(
+        "--episodes",
+        type=_at_least(1),
+        default=200,
+        help="episodes; under ramp flow, about this many ramp vehicles",
+    )
     e.add_argument("--seed", type=_at_least(0), default=1_000_000, help="first held-out road seed")
     e.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")
     e.add_argument("--scenario", default=None, help="evaluate on another scenario preset")
@@ -616,6 +643,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=_at_least(0), default=2_000_000, help="first evaluation seed")
     g.add_argument("--worlds", type=_at_least(1), default=50, help="episodes run in parallel")
     g.add_argument("--out", default="runs/grid")
+    g.add_argument(
+        "--ramp-hours",
+        type=float,
+        default=0.25,
+        help="conditions with ramp flow: simulated hours per world",
+    )
+    g.add_argument(
+        "--ramp-worlds", type=_at_least(1), default=4, help="conditions with ramp flow: worlds"
+    )
     g.add_argument("--no-progress", action="store_true")
     g.add_argument(
         "--estimator",

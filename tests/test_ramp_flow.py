@@ -209,6 +209,9 @@ def test_the_sumo_merge_reference_covers_the_grid():
     assert set(saved["cells"]) == {f"{r:g}/{m:g}" for r, m in MERGE_GRID}
     for cell in saved["cells"].values():
         assert cell["merged_vph"] > 0 and cell["ramp_delay_s"] > 0
+        assert cell["lane_changes_per_hour"] > 0  # SUMO's mainline measured as ours
+        assert 0.0 <= cell["entrance_lane_change_share"] <= 1.0
+        assert 0.0 <= cell["braking_over_b_share"] <= 1.0
 
 
 @pytest.mark.slow
@@ -223,6 +226,9 @@ def test_validate_merge_against_the_reference_writes_its_report(tmp_path, capsys
         # below saturation both simulators pass what arrives: merged flow agrees at low demand
         assert cells["200/600"]["merged_vph_ok"] and cells["600/600"]["merged_vph_ok"]
     assert "Merge capacity" in (tmp_path / "README.md").read_text()
+    for name in ("gap_forced", "idm_when_safe"):
+        share = result[name]["cells"]["600/1200"]["entrance_share_ratio"]
+        assert share is not None and share > 0
     assert "idm_when_safe: merged flow within 10 %" in capsys.readouterr().out
 
 

@@ -102,7 +102,27 @@ def test_the_trained_policy_drives_ramp_flow_and_bad_combinations_are_refused(tm
     assert "greedy evaluation under ramp flow (600 veh/h on the ramp)" in capsys.readouterr().out
     assert main(["rampflow", str(out), "--hours", "0.05", "--skip", "60", "--worlds", "2"]) == 0
     assert '"driver"' in capsys.readouterr().out.splitlines()[-1]
-    assert main(["evaluate", str(out), "--episodes", "4"]) != 0  # the one ego is not there
-    assert "no ego" in capsys.readouterr().err
+    assert main(["evaluate", str(out), "--episodes", "30", "--worlds", "2"]) == 0  # as a merge
+    evaluated = capsys.readouterr().out.splitlines()
+    assert "under ramp flow" in evaluated[-2] and '"merged_vph"' in evaluated[-1]
+    assert (
+        main(
+            [
+                "grid",
+                "--policy",
+                f"quadq:{out}",
+                "--condition",
+                "ramp_flow",
+                "--out",
+                str(tmp_path / "grid"),
+                "--ramp-hours",
+                "0.03",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    summary = (tmp_path / "grid" / "summary.md").read_text()
+    assert "## Merge under ramp flow" in summary and "| quadq | run | ramp flow |" in summary
     assert main(["train", "ramp_flow", "--seeds", "0-1", "--out", str(tmp_path / "s")]) != 0
     assert "train its seeds one by one" in capsys.readouterr().err

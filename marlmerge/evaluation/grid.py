@@ -18,7 +18,9 @@ byte, whatever the backend and however often it was interrupted.
 
 Outputs in `out`: `episodes.csv` (one row per episode, every metric of
 `marlmerge.evaluation.metrics`), `summary.md` (success / collision with 95 % intervals, comfort and
-safety tables) and heat maps `heatmap_success.png`, `heatmap_collision.png`.
+safety tables) and heat maps `heatmap_success.png`, `heatmap_collision.png`. A condition with
+ramp flow (`ramp.flow_vph > 0`, e.g. `envs/ramp_flow.toml`) is measured as the merge as a whole
+instead, in its own table (`marlmerge.evaluation.grid_flow`).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import numpy as np
 from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.config.presets import find_preset, resolve_config
 from marlmerge.evaluation.backends import check_backend, run_tasks
+from marlmerge.evaluation.grid_flow import FlowCell, check_flow_cell, flow_table, run_flow_cells
 from marlmerge.evaluation.metrics import Z_95, aggregate, episode_metrics
 from marlmerge.evaluation.registry import (  # noqa: F401 - the grid's policies, re-exported
     LEARNED_KINDS,
@@ -294,18 +297,44 @@ def run_grid(
     workers: int | None = None,
     address: str | None = None,
     estimator: str = "mc",
+    ramp_hours: float = 0.25,
+    ramp_worlds: int = 4,
 ) -> GridResult:
     """Evaluate every policy on every condition on `backend`; write the CSV, the summary and the
     heat maps. Cells already in `out_dir/cells` (same arguments) are reused. With `estimator`
-    "is" the summary adds each cell's importance-sampled collision rate."""
+    "is" the summary adds each cell's importance-sampled collision rate. Conditions with ramp
+    flow are measured as a whole merge instead (`marlmerge.evaluation.grid_flow`: `ramp_hours`
+    in each of `ramp_worlds` worlds)."""
     check_backend(backend, workers)
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if episodes < 1 or worlds < 1:
         raise ValueError(f"episodes and worlds must be >= 1, got {episodes} and {worlds}")
+    if not ramp_hours > 0 or ramp_worlds < 1:
+        raise ValueError(
+            f"ramp_hours must be > 0 and ramp_worlds >= 1, got {ramp_hours} and {ramp_worlds}"
+        )
     out = Path(out_dir)
     (out / "cells").mkdir(parents=True, exist_ok=True)
-    conds = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
+    every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
+    flowing = [c for c in every if c.scenario().ramp.flowing]
+    conds = [c for c in every if c not in flowing]
+    flow_cells = [
+        FlowCell(p, run, c, ramp_hours, ramp_worlds, seed)
+        for c in flowing
+        for p in policies
+        for run in (p.runs or (None,))
+    ]
+    for cell in flow_cells:
+        check_flow_cell(cell.policy, cell.condition)
+    names = list(dict.fromkeys(p.name for p in policies))
+    if not conds:  # ramp flow only: no episodes
+        flows = run_flow_cells(flow_cells, out, backend, workers, address)
+        write_text(
+            out / "summary.md",
+            "\n".join(["# Robustness grid", "", *flow_table(flows, ramp_hours, ramp_worlds)]),
+        )
+        return GridResult([], 0.0, 0.0, out, backend, 0, 0)
     cells = [
         Cell(p, run, c, hw, episodes, seed, worlds)
         for c in conds
@@ -350,11 +379,13 @@ def run_grid(
         len(cells) - len(todo),
     )
     labels = list(dict.fromkeys(c.label for c in conds))
-    names = list(dict.fromkeys(p.name for p in policies))
     summary = summary_markdown(rows, names, labels, result, episodes, seed)
     if estimator == "is":
         estimates = _run_estimates(cells, out, backend, workers, address)
         summary += "\n".join(_estimate_table(estimates, names, labels)) + "\n"
+    flows = run_flow_cells(flow_cells, out, backend, workers, address)
+    if flows:
+        summary += "\n" + "\n".join(flow_table(flows, ramp_hours, ramp_worlds))
     (out / "summary.md").write_text(summary)
     plot_heatmaps(rows, names, labels, out)
     return result

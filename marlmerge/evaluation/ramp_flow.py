@@ -20,7 +20,9 @@ What is measured (`RampFlowResult`), in a window that starts `skip_s` after the 
 - the ramp's entrance queue (longest) and its mean entrance wait;
 - collisions of ramp vehicles before the merge point, per 1,000 merged vehicles;
 - the mainline's mean speed in the merge zone and upstream of the ramp start (the drop is the
-  merge's cost to the mainline), and the road's throughput at its downstream end.
+  merge's cost to the mainline), and the road's throughput at its downstream end;
+- the mainline's lane changes per hour and where they happen, and how hard it brakes around the
+  merge (`marlmerge.evaluation.merge_metrics`).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import numpy as np
 import torch
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.evaluation.merge_metrics import MergeTally
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.state import Roster
 
@@ -68,6 +71,24 @@ class RampFlowResult:
     mainline_speed_drop_mps: float
     throughput_vph: float
     """Vehicles leaving by the downstream end per hour, merged ramp vehicles included."""
+    lane_changes_per_hour: float
+    """Mainline lane changes per hour and world."""
+    lane_change_shares: dict[str, float | None]
+    """Share of the lane changes in each road section (`merge_metrics.SECTIONS`)."""
+    braking_over_b_share: float
+    """Share of the mainline's braking samples around the merge harder than b."""
+    braking_over_4_share: float
+    """... harder than 4 m/s^2."""
+    hardest_braking_mps2: float
+    cut_ins: int
+    """Mainline vehicles a lane changer moved in ahead of, around the merge."""
+    cut_ins_braking_over_b: int
+    """... of which braked harder than b within `merge_metrics.CUT_IN_WINDOW_S`."""
+    hardest_braking_after_cut_in_mps2: float
+    joins: int
+    """Mainline vehicles a ramp vehicle joined ahead of."""
+    joins_braking_over_b: int
+    hardest_braking_after_join_mps2: float
     wall_s: float = 0.0
 
     def to_dict(self) -> dict[str, object]:
@@ -76,11 +97,31 @@ class RampFlowResult:
         return {k: _defined(v) for k, v in asdict(self).items()}
 
 
+def merge_line(r: RampFlowResult) -> str:
+    """One line of what a ramp-flow run measured."""
+    lo, hi = r.merged_vph_ci95
+    entrance = r.lane_change_shares.get("entrance")
+    share = "-" if entrance is None else f"{100 * entrance:.0f} %"
+    return (
+        f"merged {r.merged_vph:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay {r.ramp_delay_s:.1f} s, "
+        f"longest queue {r.ramp_max_queue}, {r.ramp_collisions} collisions, mainline "
+        f"{r.mainline_speed_upstream_mps:.1f} -> {r.mainline_speed_merge_mps:.1f} m/s, "
+        f"{r.lane_changes_per_hour:.0f} lane changes/h ({share} at the entrance), braking "
+        f"> b in {100 * r.braking_over_b_share:.2f} % of samples (hardest "
+        f"{r.hardest_braking_mps2:.1f} m/s^2); after {r.cut_ins} cut-ins "
+        f"{r.cut_ins_braking_over_b} braked > b (hardest "
+        f"{r.hardest_braking_after_cut_in_mps2:.1f}), after {r.joins} joins "
+        f"{r.joins_braking_over_b} (hardest {r.hardest_braking_after_join_mps2:.1f})"
+    )
+
+
 def _defined(value: object) -> object:
     if isinstance(value, float) and math.isnan(value):
         return None
     if isinstance(value, tuple):
         return tuple(_defined(v) for v in value)
+    if isinstance(value, dict):
+        return {k: _defined(v) for k, v in value.items()}
     return value
 
 
@@ -202,21 +243,37 @@ def run_ramp_flow(
     start = time.perf_counter()
     core = TrafficCore(cfg, batch_size=worlds, seed=seed)
     step_s = cfg.sim.dt_s * cfg.sim.action_repeat
-    _drive(core, drivers, int(round(skip_s / step_s)), None)
+    _drive(core, drivers, int(round(skip_s / step_s)), None, None)
     before = _counters(core)
     speeds = np.zeros(4)  # summed speed and samples: merge zone, upstream
+    tally = MergeTally(cfg, worlds)
     n_steps = int(round(hours * 3600.0 / step_s))
-    _drive(core, drivers, n_steps, speeds)
+    _drive(core, drivers, n_steps, speeds, tally)
     after = _counters(core)
-    result = _result(cfg, driver, worlds, n_steps * step_s, before, after, speeds)
+    result = _result(cfg, driver, worlds, n_steps * step_s, before, after, speeds, tally)
     return RampFlowResult(**{**asdict(result), "wall_s": time.perf_counter() - start})
 
 
+def evaluate_ramp_flow(
+    cfg: ScenarioConfig, driver: str, vehicles: int, seed: int, worlds: int
+) -> dict[str, object]:
+    """A policy evaluated under ramp flow as `marlmerge evaluate` and training's evaluation do:
+    `run_ramp_flow` in at most 8 worlds for about `vehicles` ramp arrivals (at least 3 minutes
+    per world), after 2 minutes of settling; the result as strict JSON."""
+    worlds = min(worlds, 8)
+    hours = max(vehicles / (cfg.ramp.flow_vph * worlds), 0.05)
+    return run_ramp_flow(cfg, driver, hours, worlds, seed, skip_s=120.0).to_dict()
+
+
 def _drive(
-    core: TrafficCore, drivers: RampDrivers, n_steps: int, speeds: np.ndarray | None
+    core: TrafficCore,
+    drivers: RampDrivers,
+    n_steps: int,
+    speeds: np.ndarray | None,
+    tally: MergeTally | None,
 ) -> None:
     """`n_steps` control steps of every world, the ramp agents driven by `drivers`; with
-    `speeds`, the mainline's speeds sampled after each step."""
+    `speeds` and `tally`, the mainline's speeds, lane changes and braking sampled after each."""
     nan = np.full(core.batch_size, np.nan)
     road = core.cfg.road
     upstream = (road.x_ramp_start_m - UPSTREAM_WINDOW_M, road.x_ramp_start_m)
@@ -224,6 +281,8 @@ def _drive(
         roster, obs = core.ramp_agents(MAX_RAMP_AGENTS)
         cmd = drivers.commands(roster, obs)
         core.rollout(nan, roster=roster, roster_accel=cmd[..., 0], roster_join=cmd[..., 1])
+        if tally is not None:
+            tally.add(core)
         if speeds is not None:
             st = core.state
             main = st.active & (st.lane >= 0)  # [B, N] on a highway lane
@@ -260,6 +319,7 @@ def _result(
     before: dict[str, np.ndarray],
     after: dict[str, np.ndarray],
     speeds: np.ndarray,
+    tally: MergeTally,
 ) -> RampFlowResult:
     d = {k: after[k] - before[k] for k in _COUNTERS}  # [B] each, in the window
     per_hour = 3600.0 / measured_s
@@ -296,4 +356,7 @@ def _result(
         mainline_speed_upstream_mps=float(v_up),
         mainline_speed_drop_mps=float(v_up - v_merge),
         throughput_vph=float(d["exited"].mean() * per_hour),
+        lane_changes_per_hour=float(tally.lane_changes.sum(axis=1).mean() * per_hour),
+        lane_change_shares=tally.shares(),
+        **tally.braking(),
     )

@@ -467,12 +467,11 @@ def evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] |
     evaluation = None
     scen = resolve_config(cfg.scenario)
     if cfg.eval_episodes > 0 and scen.ramp.flowing:
-        from marlmerge.evaluation.ramp_flow import run_ramp_flow
+        from marlmerge.evaluation.ramp_flow import evaluate_ramp_flow
 
-        worlds = min(cfg.eval_worlds, 8)
-        hours = max(cfg.eval_episodes / (scen.ramp.flow_vph * worlds), 0.05)
-        result = run_ramp_flow(scen, str(out), hours, worlds, cfg.eval_seed, skip_s=120.0)
-        evaluation = result.to_dict()
+        evaluation = evaluate_ramp_flow(
+            scen, str(out), cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+        )
         files.write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
     elif cfg.eval_episodes > 0:
         from marlmerge.evaluation.rollout import evaluate_policy

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.evaluation.merge_metrics import SECTIONS
 from marlmerge.evaluation.ramp_flow import run_ramp_flow
 
 RAMP_DEMANDS_VPH = (200.0, 600.0, 1000.0, 1200.0)
@@ -33,6 +34,8 @@ HOURS = 0.5
 SKIP_S = 300.0
 TOLERANCE = 0.10
 """Merged flow and ramp delay within this relative difference of SUMO's."""
+ENTRANCE_FACTOR = 2.0
+"""The share of the mainline's lane changes at its entrance within this factor of SUMO's."""
 REFERENCE = Path(__file__).parent / "reference" / "sumo_merge.json"
 VARIANTS = {"gap_forced": ("gap", "forced"), "idm_when_safe": ("idm", "when_safe")}
 """marlmerge's merging variants: name -> (ramp policy, `ramp.join`)."""
@@ -56,6 +59,10 @@ def run_marlmerge_cell(
         "collisions": float(r.ramp_collisions),
         "mainline_speed_merge_mps": r.mainline_speed_merge_mps,
         "mainline_speed_upstream_mps": r.mainline_speed_upstream_mps,
+        "lane_changes_per_hour": r.lane_changes_per_hour,
+        "entrance_lane_change_share": r.lane_change_shares["entrance"],
+        "braking_over_b_share": r.braking_over_b_share,
+        "hardest_braking_mps2": r.hardest_braking_mps2,
     }
 
 
@@ -74,9 +81,10 @@ def run_sumo_cell(cfg: ScenarioConfig, seed: int = 0) -> dict[str, float]:
             warm + SKIP_S, sumo_seed=i,
         )  # fmt: skip
         for k, v in out.items():
-            tot[k] = tot.get(k, 0.0) + v
+            tot[k] = max(tot.get(k, 0.0), v) if k.startswith("hardest") else tot.get(k, 0.0) + v
     free_s = -cfg.road.x_ramp_start_m / cfg.road.speed_limit_mps
     passed = max(tot["passed"], 1.0)
+    changes = sum(tot[f"lane_changes_{k}"] for k in SECTIONS)
     return {
         "merged_vph": tot["passed"] / (WORLDS * HOURS),
         "ramp_delay_s": tot["travel_s"] / passed - free_s,
@@ -85,6 +93,10 @@ def run_sumo_cell(cfg: ScenarioConfig, seed: int = 0) -> dict[str, float]:
         "teleports": tot["teleports"],
         "mainline_speed_merge_mps": tot["speed_merge_sum"] / max(tot["speed_merge_n"], 1.0),
         "mainline_speed_upstream_mps": tot["speed_up_sum"] / max(tot["speed_up_n"], 1.0),
+        "lane_changes_per_hour": changes / (WORLDS * HOURS),
+        "entrance_lane_change_share": tot["lane_changes_entrance"] / changes if changes else None,
+        "braking_over_b_share": tot["brake_over_b"] / max(tot["brake_samples"], 1.0),
+        "hardest_braking_mps2": tot["hardest_braking_mps2"],
     }
 
 
@@ -113,13 +125,21 @@ def compare(ours: dict[str, dict[str, float]], ref: dict[str, dict[str, float]])
             ratio = o[name] / s[name] if s[name] > 0 else float("inf")
             row[f"{name}_ratio"] = ratio
             row[f"{name}_ok"] = bool(abs(ratio - 1.0) <= TOLERANCE)
+        ours_e, sumo_e = o.get("entrance_lane_change_share"), s.get("entrance_lane_change_share")
+        known = ours_e is not None and sumo_e is not None and sumo_e > 0
+        row["entrance_share_ratio"] = ours_e / sumo_e if known else None
+        row["entrance_share_ok"] = bool(
+            known and 1.0 / ENTRANCE_FACTOR <= ours_e / sumo_e <= ENTRANCE_FACTOR
+        )
         cells[key] = row
     met = sum(r["merged_vph_ok"] for r in cells.values())
     met_delay = sum(r["ramp_delay_s_ok"] for r in cells.values())
+    met_entrance = sum(r["entrance_share_ok"] for r in cells.values())
     return {
         "cells": cells,
         "merged_within_10pct": f"{met}/{len(cells)}",
         "delay_within_10pct": f"{met_delay}/{len(cells)}",
+        "entrance_share_within_2x": f"{met_entrance}/{len(cells)}",
         "all_targets_met": met == met_delay == len(cells),
     }
 
@@ -177,19 +197,25 @@ def _intro(result: dict[str, Any]) -> list[str]:
         "one of marlmerge's variants below, and by SUMO's LC2013 from its acceleration lane "
         f"(SUMO {result['sumo_version']}). {WORLDS} worlds x {HOURS:g} h per cell after "
         f"{SKIP_S:g} s of settling. Delay: travel time from the drawn arrival at the ramp start "
-        "to the merge point, minus that distance at the speed limit. Target: merged flow and "
-        "ramp delay within 10 % of SUMO's in every cell.",
+        "to the merge point, minus that distance at the speed limit. Lane changes and braking: "
+        "the mainline (ramp vehicles once past the merge point) sampled every control step "
+        "(`marlmerge.evaluation.merge_metrics`); braking around the merge. Targets: merged flow "
+        "and ramp delay within 10 % of SUMO's in every cell, the entrance's share of the "
+        "lane changes within 2x.",
     ]
 
 
 def _table(result: dict[str, Any]) -> list[str]:
     lines = [
         f"Merged flow within 10 %: {result['merged_within_10pct']} cells; ramp delay within "
-        f"10 %: {result['delay_within_10pct']} cells.",
+        f"10 %: {result['delay_within_10pct']} cells; share of the mainline's lane changes in "
+        f"its first 50 m within 2x: {result.get('entrance_share_within_2x', '-')} cells.",
         "",
         "| ramp veh/h | mainline veh/h/lane | merged veh/h (ours / SUMO) | ratio "
-        "| ramp delay s (ours / SUMO) | ratio | mainline speed in the zone m/s (ours / SUMO) |",
-        "|---|---|---|---|---|---|---|",
+        "| ramp delay s (ours / SUMO) | ratio | mainline speed in the zone m/s (ours / SUMO) "
+        "| lane changes /h (ours / SUMO) | at the entrance % (ours / SUMO) "
+        "| braking > b % (ours / SUMO) | hardest braking m/s² (ours / SUMO) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, row in result["cells"].items():
         r, m = key.split("/")
@@ -198,6 +224,18 @@ def _table(result: dict[str, Any]) -> list[str]:
             f"| {r} | {m} | {o['merged_vph']:.0f} / {s['merged_vph']:.0f} | "
             f"{row['merged_vph_ratio']:.2f} | {o['ramp_delay_s']:.1f} / {s['ramp_delay_s']:.1f} | "
             f"{row['ramp_delay_s_ratio']:.2f} | {o['mainline_speed_merge_mps']:.1f} / "
-            f"{s['mainline_speed_merge_mps']:.1f} |"
+            f"{s['mainline_speed_merge_mps']:.1f} | {_pair(o, s, 'lane_changes_per_hour', 1, 0)} "
+            f"| {_pair(o, s, 'entrance_lane_change_share', 100, 0)} "
+            f"| {_pair(o, s, 'braking_over_b_share', 100, 2)} "
+            f"| {_pair(o, s, 'hardest_braking_mps2', 1, 1)} |"
         )
     return lines
+
+
+def _pair(ours: dict, sumo: dict, key: str, scale: float, digits: int) -> str:
+    """`ours / SUMO` of `key` (scaled), `-` for a value not measured."""
+
+    def one(v: float | None) -> str:
+        return "-" if v is None else f"{scale * v:.{digits}f}"
+
+    return f"{one(ours.get(key))} / {one(sumo.get(key))}"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import subprocess
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -349,6 +350,7 @@ def run_merge(
     up_hi = road.x_ramp_start_m - road.x_entrance_m
     out = dict.fromkeys(("entered", "passed", "travel_s", "wait_s", "collisions", "teleports"), 0.0)
     speeds = np.zeros(4)
+    mainline = _MainlineTally(cfg)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         net = ramp_network(folder, cfg)
@@ -380,6 +382,7 @@ def run_merge(
                     )
                     out["teleports"] += len(traci.simulation.getStartingTeleportIDList())
                 if counting and i % 4 == 3:
+                    mainline.sample(traci, drawn)
                     for lane in ("zone_1", "zone_2"):
                         n = traci.lane.getLastStepVehicleNumber(lane)
                         speeds[0] += traci.lane.getLastStepMeanSpeed(lane) * n
@@ -393,4 +396,67 @@ def run_merge(
             traci.close()
     names = ("speed_merge_sum", "speed_merge_n", "speed_up_sum", "speed_up_n")
     out.update(zip(names, speeds.tolist(), strict=True))
-    return out
+    return out | mainline.counts()
+
+
+class _MainlineTally:
+    """SUMO's mainline measured as `marlmerge.evaluation.merge_metrics` measures marlmerge's:
+    lane changes per road section and braking around the merge, sampled every control step (a
+    lane change is placed half a sample's drive before where it is first seen). Mainline:
+    every vehicle but ramp vehicles before the merge point."""
+
+    def __init__(self, cfg: ScenarioConfig):
+        from marlmerge.evaluation.merge_metrics import (
+            HARD_BRAKE_MPS2,
+            SECTIONS,
+            braking_window_m,
+            section_edges_m,
+        )
+
+        road = cfg.road
+        self.edges_m, self.window_m = section_edges_m(cfg), braking_window_m(cfg)
+        self.hard, self.b = HARD_BRAKE_MPS2, cfg.driver.comfort_brake_mps2
+        self.half_sample_s = 2 * cfg.sim.dt_s
+        # edge -> (x of its start, marlmerge lane of each SUMO lane index; -1: not mainline)
+        self.edges = {
+            "up": (road.x_entrance_m, (0, 1)),
+            "zone": (road.x_zone_start_m, (-1, 0, 1)),
+            "down": (0.0, (0, 1)),
+        }
+        self.lane_of: dict[str, int] = {}
+        self.lane_changes = np.zeros(len(SECTIONS))
+        self.brake = np.zeros(3)  # samples, harder than b, harder than HARD_BRAKE_MPS2
+        self.hardest = 0.0
+
+    def sample(self, traci: Any, ramp_ids: dict[str, float]) -> None:
+        for vid in traci.vehicle.getIDList():
+            edge = traci.vehicle.getRoadID(vid)
+            if edge not in self.edges or (vid in ramp_ids and edge != "down"):
+                continue
+            x0, lanes = self.edges[edge]
+            lane = lanes[traci.vehicle.getLaneIndex(vid)]
+            if lane < 0:
+                continue
+            x = x0 + traci.vehicle.getLanePosition(vid)
+            before = self.lane_of.get(vid, lane)
+            self.lane_of[vid] = lane
+            if before != lane:
+                at = x - traci.vehicle.getSpeed(vid) * self.half_sample_s
+                self.lane_changes[int(np.searchsorted(self.edges_m, at, side="right"))] += 1
+            if self.window_m[0] <= x < self.window_m[1]:
+                decel = -traci.vehicle.getAcceleration(vid)
+                self.brake += (1.0, decel > self.b, decel > self.hard)
+                self.hardest = max(self.hardest, decel)
+
+    def counts(self) -> dict[str, float]:
+        from marlmerge.evaluation.merge_metrics import SECTIONS
+
+        out = {
+            f"lane_changes_{k}": float(n) for k, n in zip(SECTIONS, self.lane_changes, strict=True)
+        }
+        names = ("brake_samples", "brake_over_b", "brake_over_4")
+        return (
+            out
+            | dict(zip(names, self.brake.tolist(), strict=True))
+            | {"hardest_braking_mps2": self.hardest}
+        )
