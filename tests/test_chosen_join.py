@@ -184,13 +184,17 @@ def test_what_cannot_train_a_chosen_join_is_refused(tmp_path, capsys):
 def test_a_merge_where_nothing_merged_reports_undefined_values():
     import json
 
+    from marlmerge.evaluation.merge_metrics import MergeTally
     from marlmerge.evaluation.ramp_flow import _COUNTERS, _result
 
     zeros = {k: np.zeros(2) for k in (*_COUNTERS, "ramp_max_queue")}
     after = {**zeros, "ramp_entered": np.array([30.0, 28.0]), "ramp_max_queue": np.array([9, 7])}
-    r = _result(FLOW_CHOSEN, "x", 2, 3600.0, zeros, after, np.ones(4))
+    tally = MergeTally(FLOW_CHOSEN, 2)  # nothing sampled: no lane change, no braking
+    r = _result(FLOW_CHOSEN, "x", 2, 3600.0, zeros, after, np.ones(4), tally)
     row = r.to_dict()
     assert row["merged_vph"] == 0.0 and row["ramp_delay_s"] is None
+    assert set(row["lane_change_shares"].values()) == {None}
+    assert row["braking_over_b_share"] == 0.0 and row["cut_ins"] == 0
     assert row["ramp_collisions_per_1000"] is None and row["ramp_delay_s_ci95"] == (None, None)
     json.loads(json.dumps(row), parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
 

@@ -61,6 +61,7 @@ def test_acting_network_stays_the_losss_parameters_through_a_move(algorithm):
     assert all(p.dtype == torch.float64 and p.data_ptr() in ptrs for p in net.parameters())
 
 
+@pytest.mark.slow
 def test_a_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_path, capsys, monkeypatch):
     """Checkpoints and policies hold CPU tensors whatever the device, and `device` is the one
     key a resumed run may change: a run recorded as trained on CUDA (its saved config says so)

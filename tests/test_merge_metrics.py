@@ -94,6 +94,7 @@ def test_evaluate_runs_ramp_flow_on_a_ramp_flow_scenario(capsys):
     assert "--highway / --fairness: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_grid_measures_ramp_flow_conditions_as_a_whole_merge(tmp_path):
     pols = [parse_policy("gap"), parse_policy("idm")]
     kw = dict(
@@ -117,6 +118,7 @@ def test_the_grid_measures_ramp_flow_conditions_as_a_whole_merge(tmp_path):
         run_grid([parse_policy("gap@shield")], ["ramp_flow"], **kw)
 
 
+@pytest.mark.slow
 def test_braking_after_cut_ins_follows_mobils_safe_braking():
     """Cut-ins are what MOBIL's safe braking bounds: a gentler bound, gentler braking after them
     (joins, which it does not bound, are counted apart)."""
