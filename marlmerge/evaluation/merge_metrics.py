@@ -5,8 +5,8 @@ Two of the merge's costs that merged flow and ramp delay do not show:
 - **Lane changes** of mainline vehicles (a ramp vehicle's join is not one), located where they
   happened (the position at the sample less the distance driven since the change) and counted
   per road section (`SECTIONS`): the first `ENTRANCE_M` after the entrance (a vehicle that enters
-  a lane only to leave it; SUMO enters vehicles in their best lane), the rest of the upstream,
-  beside the ramp, beside the merge zone, and downstream of the merge point.
+  a lane only to leave it), the rest of the upstream, beside the ramp, beside the merge zone, and
+  downstream of the merge point.
 - **Braking** of mainline vehicles around the merge (from `BRAKING_MARGIN_M` before the merge
   zone to `BRAKING_MARGIN_M` past the merge point), from the acceleration each realised over the
   last simulator step of every control step: the share of these samples braking harder than the
@@ -18,7 +18,8 @@ Two of the merge's costs that merged flow and ramp delay do not show:
   followed for `CUT_IN_WINDOW_S`: per kind, the events, those after which it braked harder than
   b, and the hardest braking.
 
-`marlmerge.evaluation.ramp_flow` reports both with the merge's flows (`RampFlowResult`).
+`marlmerge.evaluation.ramp_flow` reports them with the merge's flows (`RampFlowResult`);
+`marlmerge.validation.sumo` measures SUMO's mainline the same way.
 """
 
 from __future__ import annotations
