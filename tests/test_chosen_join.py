@@ -153,6 +153,7 @@ def test_ramp_flow_with_gap_acceptance_choosing_joins():
     core._check_lanes()
 
 
+@pytest.mark.slow
 def test_the_quadratic_learner_trains_a_chosen_join(tmp_path, capsys):
     from marlmerge.cli import main
     from marlmerge.learners.loading import load_policy

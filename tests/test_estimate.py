@@ -80,6 +80,7 @@ def test_profile_and_beta_weights_are_exact():
     assert np.all(tw3.band(0, 1, g3, (1.5, 1.5), tilt) == 1.5) and tw3.log_w[0] == 0.0
 
 
+@pytest.mark.slow
 def test_weighted_estimate_is_unbiased_on_a_known_rate():
     """P(y < 0.002) = 0.002 for uniform y: drawn from Beta(0.5, 3) and weighed by p/q through
     `TiltedDraws.band`, the estimate is within 3 standard errors of the truth (seed by seed and
