@@ -112,18 +112,17 @@ class MergeTally:
         st = core.state
         main = st.active & (st.lane >= 0) & ~st.from_ramp  # [B, N] mainline vehicles
         self._grow(int(st.vehicle_id.max()) + 1)
-        self._lane_changes(st, main)
-        self._moves(st, main)
+        b, s = np.nonzero(main)  # [M] each: world and slot of every mainline vehicle
+        ids = st.vehicle_id[b, s]
+        self._lane_changes(st, b, s, ids)
+        self._moves(st, b, s, ids)
         lo, hi = self.braking_window_m
-        near = main & (st.x_m >= lo) & (st.x_m < hi)
-        decel = -st.a_mps2[near]
+        near = main & (st.x_m >= lo) & (st.x_m < hi)  # [B, N] sampled for braking
+        decel = np.where(near, -st.a_mps2, 0.0)  # [B, N] m/s^2, 0 where not sampled
         self.brake_samples += near.sum(axis=1)
-        per_world = np.zeros(near.shape)
-        per_world[near] = decel
-        self.over_comfort += (per_world > self.comfort_brake_mps2).sum(axis=1)
-        self.over_hard += (per_world > HARD_BRAKE_MPS2).sum(axis=1)
-        if decel.size:
-            self.hardest_mps2 = max(self.hardest_mps2, float(decel.max()))
+        self.over_comfort += (decel > self.comfort_brake_mps2).sum(axis=1)
+        self.over_hard += (decel > HARD_BRAKE_MPS2).sum(axis=1)
+        self.hardest_mps2 = max(self.hardest_mps2, float(decel.max(initial=0.0)))
 
     def _grow(self, top: int) -> None:
         """Room for vehicle ids below `top` in the per-id arrays."""
@@ -142,52 +141,52 @@ class MergeTally:
             grown[:, :n] = old
             setattr(self, name, grown)
 
-    def _moves(self, st: TrafficState, main: np.ndarray) -> None:
-        """Vehicles moving in ahead, and the braking of their new followers within the window."""
+    def _moves(self, st: TrafficState, b: np.ndarray, s: np.ndarray, ids: np.ndarray) -> None:
+        """Vehicles moving in ahead of the mainline vehicles (b, s) (ids `ids`), and the braking
+        of their followers within the window."""
+        since = st.since_lane_change_s
+        lead = st.leader[b, s]
+        ls = np.maximum(lead, 0)
+        lead_id = np.where(lead >= 0, st.vehicle_id[b, ls], -1)
+        before = self.leader_of[b, ids]
+        moved = (
+            (before != UNSEEN)
+            & (lead >= 0)
+            & (lead_id != before)
+            & (since[b, ls] <= RECENT_MOVE_S)  # the leader just moved in
+            & (since[b, s] > RECENT_MOVE_S)  # not the follower moving
+        )
+        t = st.t_s[b]
+        if moved.any():
+            kind = st.from_ramp[b[moved], ls[moved]].astype(np.int64)  # MOVES: cut_in, join
+            self.moved_t[b[moved], ids[moved]] = t[moved]
+            self.moved_kind[b[moved], ids[moved]] = kind
+            self.braked[b[moved], ids[moved]] = False
+            np.add.at(self.moves, kind, 1)
+        self.leader_of[b, ids] = lead_id
         lo, hi = self.braking_window_m
-        for b in range(main.shape[0]):
-            s = np.flatnonzero(main[b])
-            ids = st.vehicle_id[b, s]
-            lead = st.leader[b, s]
-            lead_id = np.where(lead >= 0, st.vehicle_id[b, np.maximum(lead, 0)], -1)
-            before = self.leader_of[b, ids]
-            new = (before != UNSEEN) & (lead >= 0) & (lead_id != before)
-            ls = np.maximum(lead, 0)
-            joined = st.from_ramp[b, ls]
-            moved = (
-                new
-                & (st.since_lane_change_s[b, ls] <= RECENT_MOVE_S)  # the leader just moved in
-                & (st.since_lane_change_s[b, s] > RECENT_MOVE_S)  # not the follower moving
-            )
-            if moved.any():
-                kind = joined[moved].astype(np.int64)  # MOVES order: cut_in 0, join 1
-                self.moved_t[b, ids[moved]] = st.t_s[b]
-                self.moved_kind[b, ids[moved]] = kind
-                self.braked[b, ids[moved]] = False
-                np.add.at(self.moves, kind, 1)
-            self.leader_of[b, ids] = lead_id
-            within = (st.t_s[b] - self.moved_t[b, ids] <= CUT_IN_WINDOW_S) & (
-                (st.x_m[b, s] >= lo) & (st.x_m[b, s] < hi)
-            )
-            if not within.any():
-                continue
-            w_ids = ids[within]
-            decel = -st.a_mps2[b, s[within]]
-            kind = self.moved_kind[b, w_ids]
-            np.maximum.at(self.hardest_after, kind, decel)
-            first = (decel > self.comfort_brake_mps2) & ~self.braked[b, w_ids]
-            np.add.at(self.moves_braked, kind[first], 1)
-            self.braked[b, w_ids[first]] = True
+        x = st.x_m[b, s]
+        within = (t - self.moved_t[b, ids] <= CUT_IN_WINDOW_S) & (x >= lo) & (x < hi)
+        if not within.any():
+            return
+        wb, w_ids = b[within], ids[within]
+        decel = -st.a_mps2[wb, s[within]]
+        kind = self.moved_kind[wb, w_ids]
+        np.maximum.at(self.hardest_after, kind, decel)
+        first = (decel > self.comfort_brake_mps2) & ~self.braked[wb, w_ids]
+        np.add.at(self.moves_braked, kind[first], 1)
+        self.braked[wb[first], w_ids[first]] = True
 
-    def _lane_changes(self, st: TrafficState, main: np.ndarray) -> None:
-        ids, lanes = st.vehicle_id, st.lane
-        for b in range(main.shape[0]):
-            s = np.flatnonzero(main[b])
-            before = self.lane_of[b, ids[b, s]]
-            moved = (before >= 0) & (before != lanes[b, s])
-            if moved.any():
-                m = s[moved]
-                x = st.x_m[b, m] - st.v_mps[b, m] * st.since_lane_change_s[b, m]
-                section = np.searchsorted(self.edges_m, x, side="right")
-                np.add.at(self.lane_changes[b], section, 1)
-            self.lane_of[b, ids[b, s]] = lanes[b, s]
+    def _lane_changes(
+        self, st: TrafficState, b: np.ndarray, s: np.ndarray, ids: np.ndarray
+    ) -> None:
+        """Lane changes of the mainline vehicles (b, s) since their last sample."""
+        lanes = st.lane[b, s]
+        before = self.lane_of[b, ids]
+        moved = (before >= 0) & (before != lanes)
+        if moved.any():
+            mb, ms = b[moved], s[moved]
+            x = st.x_m[mb, ms] - st.v_mps[mb, ms] * st.since_lane_change_s[mb, ms]
+            section = np.searchsorted(self.edges_m, x, side="right")
+            np.add.at(self.lane_changes, (mb, section), 1)
+        self.lane_of[b, ids] = lanes
