@@ -196,22 +196,11 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
 
 def _print_evaluation(ev: dict) -> None:
     if "merged_vph" in ev:  # a ramp-flow run: the merge as a whole
-        lo, hi = ev["merged_vph_ci95"]
-        head = f"greedy evaluation under ramp flow ({ev['ramp_demand_vph']:g} veh/h on the ramp): "
-        if ev["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
-            print(f"{head}no ramp vehicle merged, {ev['ramp_collisions']} collisions")
-            return
-        entrance = (ev.get("lane_change_shares") or {}).get("entrance")
-        share = "-" if entrance is None else f"{100 * entrance:.0f} %"
+        from marlmerge.evaluation.ramp_flow import merge_line
+
         print(
-            f"{head}merged {ev['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
-            f"{ev['ramp_delay_s']:.1f} s, longest queue {ev['ramp_max_queue']}, "
-            f"{ev['ramp_collisions']} collisions ({ev['ramp_collisions_per_1000']:.2f} per 1,000 "
-            f"merged); mainline {ev['mainline_speed_upstream_mps']:.1f} -> "
-            f"{ev['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
-            f"{ev['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), "
-            f"braking > b in {100 * ev['braking_over_b_share']:.2f} % of samples (hardest "
-            f"{ev['hardest_braking_mps2']:.1f} m/s^2)"
+            f"greedy evaluation under ramp flow ({ev['ramp_demand_vph']:g} veh/h on the ramp): "
+            + merge_line(ev)
         )
         return
 
@@ -398,12 +387,12 @@ def rampflow_cmd(args: argparse.Namespace) -> int:
     rows = []
     for vph in demands:
         cfg = base.replace(**{"ramp.flow_vph": vph})
-        r = run_ramp_flow(cfg, args.policy, args.hours, args.worlds, args.seed, args.skip)
+        row = run_ramp_flow(cfg, args.policy, args.hours, args.worlds, args.seed, args.skip)
+        rows.append(row.to_dict())
         print(
-            f"ramp {vph:g} veh/h, mainline {r.mainline_demand_vph_per_lane:g} veh/h/lane: "
-            + merge_line(r)
+            f"ramp {vph:g} veh/h, mainline {row.mainline_demand_vph_per_lane:g} veh/h/lane: "
+            + merge_line(rows[-1])
         )
-        rows.append(r.to_dict())
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

@@ -89,11 +89,10 @@ def run_flow_cells(
 
 
 def _num(value: float | None, digits: int = 0) -> str:
-    return (
-        "-"
-        if value is None or (isinstance(value, float) and math.isnan(value))
-        else (f"{value:.{digits}f}")
-    )
+    """`value` with `digits` decimals, `-` where it is undefined (None or NaN)."""
+    if value is None or math.isnan(value):
+        return "-"
+    return f"{value:.{digits}f}"
 
 
 def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -97,21 +98,26 @@ class RampFlowResult:
         return {k: _defined(v) for k, v in asdict(self).items()}
 
 
-def merge_line(r: RampFlowResult) -> str:
-    """One line of what a ramp-flow run measured."""
-    lo, hi = r.merged_vph_ci95
-    entrance = r.lane_change_shares.get("entrance")
+def merge_line(row: dict[str, Any]) -> str:
+    """One line of what a ramp-flow run measured, from its `RampFlowResult.to_dict()` (as
+    `rampflow` and `evaluate` print it)."""
+    if row["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
+        return f"no ramp vehicle merged, {row['ramp_collisions']} collisions"
+    lo, hi = row["merged_vph_ci95"]
+    entrance = row["lane_change_shares"]["entrance"]
     share = "-" if entrance is None else f"{100 * entrance:.0f} %"
     return (
-        f"merged {r.merged_vph:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay {r.ramp_delay_s:.1f} s, "
-        f"longest queue {r.ramp_max_queue}, {r.ramp_collisions} collisions, mainline "
-        f"{r.mainline_speed_upstream_mps:.1f} -> {r.mainline_speed_merge_mps:.1f} m/s, "
-        f"{r.lane_changes_per_hour:.0f} lane changes/h ({share} at the entrance), braking "
-        f"> b in {100 * r.braking_over_b_share:.2f} % of samples (hardest "
-        f"{r.hardest_braking_mps2:.1f} m/s^2); after {r.cut_ins} cut-ins "
-        f"{r.cut_ins_braking_over_b} braked > b (hardest "
-        f"{r.hardest_braking_after_cut_in_mps2:.1f}), after {r.joins} joins "
-        f"{r.joins_braking_over_b} (hardest {r.hardest_braking_after_join_mps2:.1f})"
+        f"merged {row['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
+        f"{row['ramp_delay_s']:.1f} s, longest queue {row['ramp_max_queue']}, "
+        f"{row['ramp_collisions']} collisions ({row['ramp_collisions_per_1000']:.2f} per 1,000 "
+        f"merged); mainline {row['mainline_speed_upstream_mps']:.1f} -> "
+        f"{row['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
+        f"{row['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), braking "
+        f"> b in {100 * row['braking_over_b_share']:.2f} % of samples (hardest "
+        f"{row['hardest_braking_mps2']:.1f} m/s^2); after {row['cut_ins']} cut-ins "
+        f"{row['cut_ins_braking_over_b']} braked > b (hardest "
+        f"{row['hardest_braking_after_cut_in_mps2']:.1f}), after {row['joins']} joins "
+        f"{row['joins_braking_over_b']} (hardest {row['hardest_braking_after_join_mps2']:.1f})"
     )
 
 
