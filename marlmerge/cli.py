@@ -490,10 +490,10 @@ def _validate_merge(args: argparse.Namespace, use_sumo: bool) -> int:
     from marlmerge.config.presets import resolve_config
     from marlmerge.validation.merge import validate_merge
 
-    out = args.out if args.out != "docs/validation" else "docs/validation/merge"
-    result = validate_merge(
-        resolve_config(args.scenario), out, use_sumo, update_reference=args.update_reference
-    )
+    cfg = resolve_config(args.scenario)
+    default_out = "docs/validation/merge" + ("_best" if cfg.traffic.entrance_lane == "best" else "")
+    out = args.out if args.out != "docs/validation" else default_out
+    result = validate_merge(cfg, out, use_sumo, update_reference=args.update_reference)
     from marlmerge.validation.merge import VARIANTS
 
     for name in VARIANTS:

@@ -92,6 +92,7 @@ NAN, INF = float("nan"), float("inf")
         ("traffic.warmup_s", 1e5, "must be in [0, 600]"),
         ("reward.w_front", -1.0, "must be in [0, 10000]"),
         ("ego.start_speed_mps", (-1.0, 5.0), "must be in [0, 60]"),
+        ("traffic.entrance_lane", "fastest", "must be one of 'drawn', 'best'"),
     ],
 )
 def test_bad_scenario_numbers_are_refused_naming_key_and_value(key, value, message):

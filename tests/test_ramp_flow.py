@@ -202,10 +202,11 @@ def test_a_join_mode_without_ramp_flow_is_refused():
         FLOW.replace(**{"ramp.join": "chosen"})
 
 
-def test_the_sumo_merge_reference_covers_the_grid():
-    from marlmerge.validation.merge import MERGE_GRID, REFERENCE
+@pytest.mark.parametrize("entrance", ["drawn", "best"])
+def test_the_sumo_merge_reference_covers_the_grid(entrance):
+    from marlmerge.validation.merge import MERGE_GRID, REFERENCES
 
-    saved = json.loads(REFERENCE.read_text())
+    saved = json.loads(REFERENCES[entrance].read_text())
     assert set(saved["cells"]) == {f"{r:g}/{m:g}" for r, m in MERGE_GRID}
     for cell in saved["cells"].values():
         assert cell["merged_vph"] > 0 and cell["ramp_delay_s"] > 0
@@ -230,6 +231,22 @@ def test_validate_merge_against_the_reference_writes_its_report(tmp_path, capsys
         share = result[name]["cells"]["600/1200"]["entrance_share_ratio"]
         assert share is not None and share > 0
     assert "idm_when_safe: merged flow within 10 %" in capsys.readouterr().out
+
+
+def test_validate_merge_picks_the_reference_of_the_entrance_rule(tmp_path, monkeypatch):
+    from marlmerge.validation import merge
+
+    best = ScenarioConfig().replace(**{"traffic.entrance_lane": "best"})
+    with pytest.raises(ValueError, match="--update-reference needs SUMO"):
+        merge.validate_merge(best.replace(**{"ramp.flow_vph": 10.0}), tmp_path, True, True)
+    # the entrance rule picks the committed SUMO side (the grid itself is the slow test above)
+    seen = []
+    monkeypatch.setattr(
+        merge, "run_grid", lambda cfg, which, seed=0: seen.append(cfg.traffic.entrance_lane) or {}
+    )
+    result = merge.validate_merge(best, tmp_path)
+    assert seen == ["best", "best"] and result["entrance_lane"] == "best"
+    assert 'departLane="best"' in (tmp_path / "README.md").read_text()
 
 
 def test_ramp_flow_pettingzoo_agents_appear_and_leave():

@@ -23,6 +23,7 @@ from marlmerge.config.rules import (
 )
 from marlmerge.config.scenario import (
     EGO_JOINS,
+    ENTRANCE_LANES,
     MAX_HIGHWAY_AGENTS,
     MAX_LATENCY_S,
     MAX_WARMUP_S,
@@ -49,6 +50,7 @@ from marlmerge.config.scenario import (
 
 __all__ = [
     "EGO_JOINS",
+    "ENTRANCE_LANES",
     "MAX_HIGHWAY_AGENTS",
     "MAX_LATENCY_S",
     "MAX_WARMUP_S",

@@ -34,6 +34,8 @@ RAMP_JOINS = ("forced", "when_safe")
 """Values of `ramp.join`."""
 EGO_JOINS = ("forced", "chosen")
 """Values of `ego.join`."""
+ENTRANCE_LANES = ("drawn", "best")
+"""Values of `traffic.entrance_lane`."""
 MAX_LATENCY_S = 2.0
 """`sensing.latency_s` is at most this (the core keeps that many steps of observations)."""
 MAX_WARMUP_S = 600.0
@@ -169,6 +171,12 @@ class TrafficConfig:
     the driver's desired speed."""
     warmup_s: float = num(20.0, 0.0, MAX_WARMUP_S)
     """A freshly seeded road is filled with steady flow and then simulated this long."""
+    entrance_lane: str = "drawn"
+    """The lane an arrival enters: "drawn" (the paper's: each lane's own Poisson stream enters
+    that lane) or "best" (as SUMO's `departLane="best"` on this road: the arrivals of both
+    streams enter in the order of their drawn times, each into the lane whose last vehicle is
+    farthest from the entrance, counting the road up to the merge zone's start; the right lane
+    on a tie). Either way a vehicle waits at the entrance until its gap allows it in."""
 
 
 @dataclass(frozen=True)
@@ -558,6 +566,11 @@ def validate(cfg: ScenarioConfig) -> None:
     r, e, d, s, t = cfg.road, cfg.ego, cfg.driver, cfg.sim, cfg.traffic
     mean_mps, std_mps = t.entry_speed_mps
     checks: list[tuple[bool, str]] = [
+        (
+            t.entrance_lane in ENTRANCE_LANES,
+            f"traffic.entrance_lane must be one of {', '.join(map(repr, ENTRANCE_LANES))}, "
+            f"got {t.entrance_lane!r}",
+        ),
         (
             mean_mps > 0 and std_mps >= 0,
             f"traffic.entry_speed_mps must be (mean > 0, std >= 0), got {t.entry_speed_mps}",

@@ -26,6 +26,7 @@ import numpy as np
 from numba import prange
 
 from marlmerge.sim import lanes as ll
+from marlmerge.sim.entrance import free_slot
 from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import (
     EGO,
@@ -128,7 +129,6 @@ from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, se
 from marlmerge.sim.step import (
     deactivate,
     ego_gaps,
-    free_slot,
     gap_vehicles,
     neighbours,
     substep,

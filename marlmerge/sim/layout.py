@@ -296,6 +296,7 @@ _PARAMS = (
     "x_zone_start_m",
     "ego_join_chosen",
     "obs_on_ramp_col",
+    "entrance_best",
 )
 (
     P_DT,
@@ -381,6 +382,7 @@ _PARAMS = (
     P_X_ZONE_START,
     P_JOIN_CHOSEN,
     P_OBS_ON_RAMP,
+    P_ENTRANCE_BEST,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -492,4 +494,5 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "x_zone_start_m": cfg.road.x_zone_start_m,
         "ego_join_chosen": float(e.chooses_join),
         "obs_on_ramp_col": float(on_ramp_column(cfg)),
+        "entrance_best": float(cfg.traffic.entrance_lane == "best"),
     }

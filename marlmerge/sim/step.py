@@ -23,12 +23,12 @@ import math
 import numpy as np
 
 from marlmerge.sim import lanes as ll
-from marlmerge.sim.drivers import ego_merges_ahead, entry_speed, idm, profile_accel
+from marlmerge.sim.drivers import ego_merges_ahead, idm, profile_accel
+from marlmerge.sim.entrance import arrivals
 from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import (
     COOPERATIVE,
     EGO,
-    EGO_STREAM,
     EV_CHANGE,
     EV_CHOOSES,
     EV_COLLIDED,
@@ -38,7 +38,6 @@ from marlmerge.sim.layout import (
     EV_JOIN,
     EV_TOW,
     LEFT,
-    NEUTRAL,
     OUTCOME_COLLISION,
     OUTCOME_NONE,
     OUTCOME_SUCCESS,
@@ -74,10 +73,8 @@ from marlmerge.sim.layout import (
     P_STALL_TIME,
     P_SUCCESS,
     P_V_LIMIT,
-    P_X_ENTRANCE,
     P_X_EXIT,
     P_X_OVERLAP,
-    P_X_RAMP_START,
     P_X_ZONE_START,
     P_YIELD_LC_BONUS,
     P_YIELD_MAX_BRAKE,
@@ -87,12 +84,6 @@ from marlmerge.sim.layout import (
     RO_ID,
     RO_MASK,
     RO_SLOT,
-    SC_POL,
-    SC_PROFILE,
-    SC_T,
-    SC_T_HW,
-    SC_V,
-    SC_V0,
     VF_A,
     VF_ACC,
     VF_AGE,
@@ -114,14 +105,12 @@ from marlmerge.sim.layout import (
     VI_PROFILE,
     VI_RAMP,
     WF_DB,
-    WF_DELAY_SUM,
     WF_DF,
     WF_EGO_CMD,
     WF_EGO_IN_LANE,
     WF_EGO_STALL,
     WF_EGO_T,
     WF_RAMP_TRAVEL_SUM,
-    WF_RAMP_WAIT_SUM,
     WF_T,
     WF_VB,
     WF_VF,
@@ -129,28 +118,18 @@ from marlmerge.sim.layout import (
     WF_XF,
     WI_BACK,
     WI_BG_COLLISIONS,
-    WI_COUNT_RIGHT,
     WI_EGO_PARTNER,
     WI_EGO_REAR,
-    WI_ENTERED,
     WI_EXITED,
     WI_FILTER_COUNT,
     WI_FRONT,
-    WI_HEAD_RIGHT,
     WI_N_ACTIVE,
     WI_N_RAMP,
     WI_N_RIGHT,
-    WI_NEXT_ID,
     WI_OUTCOME,
-    WI_OVERFLOW,
-    WI_QUEUE_MAX,
-    WI_QUEUE_RIGHT,
     WI_RAMP_COLLISIONS,
-    WI_RAMP_ENTERED,
     WI_RAMP_JOINED,
     WI_RAMP_PASSED,
-    WI_RAMP_QUEUE,
-    WI_RAMP_QUEUE_MAX,
     WI_RAMP_TOWED,
     WI_STEP_OUTCOME,
     WI_STEPS,
@@ -586,160 +565,6 @@ def exits(S: tuple, b: int, p: np.ndarray) -> None:
             deactivate(S, b, s)
             vi[b, VI_FLAGS, s] |= EV_EXITED
             wi[b, WI_EXITED] += 1
-
-
-@kernel(inline=True)
-def free_slot(S: tuple, b: int) -> int:
-    """The lowest free mainline slot, -1 if none."""
-    vf, vi, wf, wi, lanes, sched = S
-    for s in range(1, vi.shape[2]):
-        if vi[b, VI_ACTIVE, s] == 0:
-            return s
-    return -1
-
-
-@kernel(inline=True)
-def fill_slot(
-    S: tuple,
-    b: int,
-    s: int,
-    lane: int,
-    x: float,
-    v: float,
-    v0: float,
-    headway: float,
-    politeness: float,
-    profile: int,
-    p: np.ndarray,
-) -> None:
-    """A new vehicle in slot `s` (a fresh vehicle id), in no lane list yet (an arrival then goes
-    into its lane's list, a ramp vehicle into the ramp's)."""
-    vf, vi, wf, wi, lanes, sched = S
-    vf[b, VF_X, s] = x
-    vf[b, VF_V, s] = v
-    vf[b, VF_A, s] = 0.0
-    vf[b, VF_V0, s] = v0
-    vf[b, VF_T, s] = headway
-    vf[b, VF_POL, s] = politeness
-    vf[b, VF_SINCE_LC, s] = p[P_LC_COOLDOWN]
-    vf[b, VF_AGE, s] = 0.0
-    vi[b, VI_LANE, s] = lane
-    vi[b, VI_ACTIVE, s] = 1
-    vi[b, VI_PROFILE, s] = profile
-    vi[b, VI_ID, s] = wi[b, WI_NEXT_ID]
-    vi[b, VI_COLLIDED, s] = 0
-    vi[b, VI_RAMP, s] = 0
-    vi[b, VI_FLAGS, s] &= EV_COLLIDED | EV_EXITED  # what the slot saw earlier in this call
-    wi[b, WI_NEXT_ID] += 1
-    wi[b, WI_N_ACTIVE] += 1
-
-
-@kernel(inline=True)
-def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
-    """The first vehicle of each lane's entrance queue (drawn arrivals whose time has come) enters
-    at its drawn speed once the gap to the last vehicle of its lane is at least its IDM desired
-    gap (`entry_speed`: it then brakes no harder than its comfortable deceleration b);
-    otherwise it waits; nobody is dropped. Queue lengths are counted every step."""
-    vf, vi, wf, wi, lanes, sched = S
-    t = wf[b, WF_T]
-    q_len = sched.shape[2]
-    for lane in range(2):
-        head, count = wi[b, WI_HEAD_RIGHT + lane], wi[b, WI_COUNT_RIGHT + lane]
-        if count > 0 and sched[b, lane, head, SC_T] <= t:
-            n = wi[b, WI_N_RIGHT + lane]
-            v_enter = sched[b, lane, head, SC_V]
-            if n > 0:
-                tail = lanes[b, lane, n - 1]
-                gap = vf[b, VF_X, tail] - p[P_LEN] - p[P_X_ENTRANCE]
-                v_enter = entry_speed(
-                    sched[b, lane, head, SC_V],
-                    gap,
-                    vf[b, VF_V, tail],
-                    sched[b, lane, head, SC_T_HW],
-                    p[P_A],
-                    p[P_B],
-                    p[P_S0],
-                )
-            if v_enter >= 0.0:
-                s = free_slot(S, b)
-                if s < 0:
-                    wi[b, WI_OVERFLOW] = 1
-                else:
-                    fill_slot(
-                        S,
-                        b,
-                        s,
-                        lane,
-                        p[P_X_ENTRANCE],
-                        v_enter,
-                        sched[b, lane, head, SC_V0],
-                        sched[b, lane, head, SC_T_HW],
-                        sched[b, lane, head, SC_POL],
-                        int(sched[b, lane, head, SC_PROFILE]),
-                        p,
-                    )
-                    ll.insert(S, b, lane, s)
-                    wf[b, WF_DELAY_SUM] += t - sched[b, lane, head, SC_T]
-                    wi[b, WI_ENTERED] += 1
-                    head = (head + 1) % q_len
-                    count -= 1
-                    wi[b, WI_HEAD_RIGHT + lane] = head
-                    wi[b, WI_COUNT_RIGHT + lane] = count
-        queue = 0
-        while queue < count and sched[b, lane, (head + queue) % q_len, SC_T] <= t:
-            queue += 1
-        wi[b, WI_QUEUE_RIGHT + lane] = queue
-        wi[b, WI_QUEUE_MAX] = max(wi[b, WI_QUEUE_MAX], queue)
-    if p[P_RAMP_FLOW] > 0.0:
-        ramp_arrivals(S, b, p)
-
-
-@kernel
-def ramp_arrivals(S: tuple, b: int, p: np.ndarray) -> None:
-    """Ramp flow: the first drawn ramp vehicle whose time has come enters at the ramp start at
-    its drawn speed once the gap to the ramp's last vehicle is its IDM desired gap (as on the
-    lanes); otherwise it waits in the ramp's entrance queue. Its age counts from its drawn
-    arrival, so that it includes the wait."""
-    vf, vi, wf, wi, lanes, sched = S
-    t, q_len, st = wf[b, WF_T], sched.shape[2], EGO_STREAM
-    head, count = wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st]
-    x0 = p[P_X_RAMP_START]
-    if count > 0 and sched[b, st, head, SC_T] <= t:
-        n = wi[b, WI_N_RAMP]
-        v_enter = sched[b, st, head, SC_V]
-        if n > 0:
-            tail = lanes[b, RAMP_LIST, n - 1]
-            v_enter = entry_speed(
-                v_enter,
-                vf[b, VF_X, tail] - p[P_LEN] - x0,
-                vf[b, VF_V, tail],
-                sched[b, st, head, SC_T_HW],
-                p[P_A],
-                p[P_B],
-                p[P_S0],
-            )
-        s = free_slot(S, b) if v_enter >= 0.0 else -1
-        if v_enter >= 0.0 and s < 0:
-            wi[b, WI_OVERFLOW] = 1
-        elif s >= 0:
-            t_drawn = sched[b, st, head, SC_T]
-            fill_slot(
-                S, b, s, RAMP, x0, v_enter, sched[b, st, head, SC_V0],
-                sched[b, st, head, SC_T_HW], sched[b, st, head, SC_POL], NEUTRAL, p,
-            )  # fmt: skip
-            vf[b, VF_AGE, s] = t - t_drawn
-            vi[b, VI_RAMP, s] = 1
-            ll.ramp_append(S, b, s)
-            wf[b, WF_RAMP_WAIT_SUM] += t - t_drawn
-            wi[b, WI_RAMP_ENTERED] += 1
-            head = (head + 1) % q_len
-            count -= 1
-            wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st] = head, count
-    queue = 0
-    while queue < count and sched[b, st, (head + queue) % q_len, SC_T] <= t:
-        queue += 1
-    wi[b, WI_RAMP_QUEUE] = queue
-    wi[b, WI_RAMP_QUEUE_MAX] = max(wi[b, WI_RAMP_QUEUE_MAX], queue)
 
 
 @kernel

@@ -37,6 +37,9 @@ TOLERANCE = 0.10
 ENTRANCE_FACTOR = 2.0
 """The share of the mainline's lane changes at its entrance within this factor of SUMO's."""
 REFERENCE = Path(__file__).parent / "reference" / "sumo_merge.json"
+REFERENCES = {"drawn": REFERENCE, "best": REFERENCE.with_name("sumo_merge_best.json")}
+"""The committed SUMO side for each `traffic.entrance_lane` (SUMO's `departLane` the lane each
+vehicle was drawn for, or "best")."""
 VARIANTS = {"gap_forced": ("gap", "forced"), "idm_when_safe": ("idm", "when_safe")}
 """marlmerge's merging variants: name -> (ramp policy, `ramp.join`)."""
 
@@ -154,8 +157,12 @@ def validate_merge(
     """Run marlmerge's grid (and SUMO's when `use_sumo`, else the committed reference), compare,
     write `results.json` and `README.md` under `out_dir`."""
     cfg = cfg or ScenarioConfig()
-    if update_reference and not (use_sumo and cfg == ScenarioConfig() and seed == 0):
-        raise ValueError("--update-reference needs SUMO, the default scenario and seed 0")
+    reference = REFERENCES[cfg.traffic.entrance_lane]
+    if update_reference and not (use_sumo and _reference_scenario(cfg) and seed == 0):
+        raise ValueError(
+            "--update-reference needs SUMO, the default scenario (traffic.entrance_lane may be "
+            "set) and seed 0"
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if use_sumo:
@@ -163,16 +170,25 @@ def validate_merge(
 
         ref, version = run_grid(cfg, "sumo", seed), sumo_version()
         if update_reference:
-            REFERENCE.write_text(json.dumps({"sumo_version": version, "cells": ref}, indent=1))
+            reference.write_text(json.dumps({"sumo_version": version, "cells": ref}, indent=1))
     else:
-        saved = json.loads(REFERENCE.read_text())
+        saved = json.loads(reference.read_text())
         ref, version = saved["cells"], saved["sumo_version"]
     result: dict[str, Any] = {name: compare(run_grid(cfg, name, seed), ref) for name in VARIANTS}
     result["all_targets_met"] = any(result[name]["all_targets_met"] for name in VARIANTS)
     result["sumo_version"], result["sumo_ran"] = version, use_sumo
+    result["entrance_lane"] = cfg.traffic.entrance_lane
     (out / "results.json").write_text(json.dumps(result, indent=1))
     (out / "README.md").write_text(markdown(result))
     return result
+
+
+def _reference_scenario(cfg: ScenarioConfig) -> bool:
+    """The default scenario, whatever its name and entrance rule: the ones a committed SUMO
+    reference is made of."""
+    default = ScenarioConfig()
+    same = cfg.replace(**{"name": default.name, "traffic.entrance_lane": "drawn"})
+    return same == default
 
 
 VARIANT_TITLES = {
@@ -202,7 +218,18 @@ def _intro(result: dict[str, Any]) -> list[str]:
         "(`marlmerge.evaluation.merge_metrics`); braking around the merge. Targets: merged flow "
         "and ramp delay within 10 % of SUMO's in every cell, the entrance's share of the "
         "lane changes within 2x.",
+        "",
+        ENTRANCE_TEXT[result.get("entrance_lane", "drawn")],
     ]
+
+
+ENTRANCE_TEXT = {
+    "drawn": "Entrance: every mainline vehicle enters the lane it was drawn for in both "
+    '(`traffic.entrance_lane = "drawn"`, SUMO `departLane` its index).',
+    "best": "Entrance: the mainline's arrivals enter in the order of their drawn times, each in "
+    'the best lane (`traffic.entrance_lane = "best"`, SUMO `departLane="best"`: the lane whose '
+    "last vehicle is farthest from the entrance).",
+}
 
 
 def _table(result: dict[str, Any]) -> list[str]:

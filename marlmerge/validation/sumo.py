@@ -141,12 +141,19 @@ def run_car_following(case: CarFollowingCase, cfg: ScenarioConfig) -> Trajectori
 
 
 def _drawn_vehicles(
-    cfg: ScenarioConfig, rows: list[tuple], vehicle: str, vtype: str, route: str
+    cfg: ScenarioConfig,
+    rows: list[tuple],
+    vehicle: str,
+    vtype: str,
+    route: str,
+    lane_rule: str = "drawn",
 ) -> tuple[list[str], list[tuple[float, str]]]:
     """vTypes and (departure s, vehicle line) of drawn vehicles `rows` (time, lane, speed,
     desired speed, headway), named `{vehicle}{i}` of type `{vtype}{i}`: each departs at its
-    drawn time in its lane, at its drawn speed (`departSpeed`: SUMO delays the insertion until
-    that speed is safe), with its drawn desired speed and headway."""
+    drawn time in its lane (`lane_rule` "drawn") or in SUMO's best lane (`"best"`,
+    `departLane="best"`, as `traffic.entrance_lane = "best"`), at its drawn speed
+    (`departSpeed`: SUMO delays the insertion until that speed is safe), with its drawn desired
+    speed and headway."""
     v_limit = cfg.road.speed_limit_mps
     types = [_vtype(cfg, f"{vtype}{i}", v0 / v_limit, hw) for i, (*_, v0, hw) in enumerate(rows)]
     vehicles = []
@@ -157,7 +164,8 @@ def _drawn_vehicles(
             (
                 float(depart),
                 f'<vehicle id="{vehicle}{i}" type="{vtype}{i}" route="{route}" depart="{depart}" '
-                f'departLane="{lane}" departPos="0" departSpeed="{v!r}"/>',
+                f'departLane="{lane if lane_rule == "drawn" else lane_rule}" departPos="0" '
+                f'departSpeed="{v!r}"/>',
             )
         )
     return types, vehicles
@@ -167,10 +175,10 @@ def _mainline_vehicles(
     cfg: ScenarioConfig, seed: int | np.random.SeedSequence, duration_s: float, route: str
 ) -> tuple[list[str], list[tuple[float, str]]]:
     """`_drawn_vehicles` of the arrivals marlmerge draws for a world seeded `seed`, in time
-    order."""
+    order, entering as `traffic.entrance_lane` says."""
     arrivals = drawn_arrivals(cfg, seed, duration_s)
     rows = sorted((t, lane, v, v0, hw) for lane, a in enumerate(arrivals) for t, v, v0, hw in a)
-    return _drawn_vehicles(cfg, rows, "v", "t", route)
+    return _drawn_vehicles(cfg, rows, "v", "t", route, cfg.traffic.entrance_lane)
 
 
 def _mainline_routes(
