@@ -182,3 +182,17 @@ def test_every_folder_of_the_package_ships_in_a_wheel():
     listed = set(read_toml(ROOT.parent / "pyproject.toml")["tool"]["setuptools"]["packages"])
     folders = {m for m, p in _modules() if p.name == "__init__.py"}
     assert folders <= listed, f"packages missing from pyproject.toml: {sorted(folders - listed)}"
+
+
+def test_every_kernel_file_is_hashed_for_the_compile_cache():
+    # a kernel file left out of KERNEL_SOURCES would keep stale machine code of its inlined
+    # functions in its callers' cache after an edit (the list also holds layout.py, whose
+    # constants the kernels compile in)
+    from marlmerge.sim.jit import KERNEL_SOURCES
+
+    sim = Path(marlmerge.__file__).parent / "sim"
+    with_kernels = {
+        f"sim/{p.name}" for p in sim.glob("*.py") if "@kernel" in p.read_text(encoding="utf-8")
+    }
+    assert with_kernels <= set(KERNEL_SOURCES)
+    assert "sim/layout.py" in KERNEL_SOURCES

@@ -34,6 +34,7 @@ from numba import njit
 _PACKAGE = Path(__file__).resolve().parent.parent
 KERNEL_SOURCES = (
     "sim/drivers.py",
+    "sim/entrance.py",
     "sim/jit.py",
     "sim/kernels.py",
     "sim/lanes.py",
