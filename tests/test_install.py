@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,10 @@ def test_wheel_install_trains_and_runs_a_grid_from_another_directory(tmp_path):
     # the dependencies come from this interpreter's site-packages; marlmerge from the wheel
     py = child_venv(venv)
     wheel = next(wheels.glob("marlmerge-*.whl"))
+    with zipfile.ZipFile(wheel) as zf:  # the committed SUMO sides the validations compare with
+        shipped = set(zf.namelist())
+    for name in ("sumo_reference.npz", "sumo_merge.json", "sumo_merge_best.json"):
+        assert f"marlmerge/validation/reference/{name}" in shipped
     subprocess.run(
         [str(py), "-m", "pip", "install", "-q", "--no-deps", "--force-reinstall", str(wheel)],
         check=True,
