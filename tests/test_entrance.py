@@ -49,21 +49,26 @@ def test_entering_vehicles_never_brake_harder_than_b(flow):
         assert stats["queue"].min() > 20 and stats["mean_delay_s"].min() > 5.0
 
 
-@pytest.mark.parametrize("preset", ENVS, ids=lambda p: p.stem)
-def test_no_drawn_arrival_is_ever_lost(preset):
-    cfg = load_scenario(preset).replace(**{"traffic.flow_vph_per_lane": 2200.0})
-    seeds = [5, 6]
-    core = TrafficCore(cfg, batch_size=2, seed=seeds)
+def _none_lost(cfg: ScenarioConfig, seeds: list[int], n_steps: int = 2000):
+    """One world per seed for `n_steps` simulator steps: every drawn arrival that is due has entered
+    or is still waiting. Returns the state."""
+    core = TrafficCore(cfg, batch_size=len(seeds), seed=seeds)
     core.remove_ego()
     st = core.state
-    n_steps = 2000
     for _ in range(n_steps):
-        core.step(np.full(2, np.nan))
+        core.step(np.full(len(seeds), np.nan))
     now = n_steps * cfg.sim.dt_s + cfg.traffic.warmup_s
     assert np.allclose(st.t_s, now)
     for w, seed in enumerate(seeds):
         due = sum(int((a[:, 0] <= now + 1e-9).sum()) for a in drawn_arrivals(cfg, seed, now + 5))
         assert due == st.entered[w] + st.queue[w].sum()  # entered or still waiting
+    return st
+
+
+@pytest.mark.parametrize("preset", ENVS, ids=lambda p: p.stem)
+def test_no_drawn_arrival_is_ever_lost(preset):
+    cfg = load_scenario(preset).replace(**{"traffic.flow_vph_per_lane": 2200.0})
+    st = _none_lost(cfg, [5, 6])
     on_road_filled = st.n_active - st.entered + st.exited + 2 * st.background_collisions
     assert (on_road_filled >= 0).all()
 
@@ -129,15 +134,7 @@ def test_the_best_entrance_keeps_every_drawn_vehicle_and_the_default_is_drawn():
     cfg = ScenarioConfig().replace(
         **{"traffic.entrance_lane": "best", "traffic.flow_vph_per_lane": 2400.0}
     )
-    core = TrafficCore(cfg, batch_size=2, seed=[1, 2])
-    core.remove_ego()
-    st = core.state
-    for _ in range(2000):
-        core.step(np.full(2, np.nan))
-    now = float(st.t_s[0])
-    for w, seed in enumerate([1, 2]):
-        due = sum(int((a[:, 0] <= now + 1e-9).sum()) for a in drawn_arrivals(cfg, seed, now + 5))
-        assert due == st.entered[w] + st.queue[w].sum()
+    st = _none_lost(cfg, [1, 2])
     assert st.queue.sum() > 0  # above the entrance's capacity: a queue, counted
 
 

@@ -139,7 +139,7 @@ def _enter(S: tuple, b: int, p: np.ndarray, stream: int, lane: int) -> bool:
         tail = lanes[b, lane, n - 1]
         gap = vf[b, VF_X, tail] - p[P_LEN] - p[P_X_ENTRANCE]
         v_enter = entry_speed(
-            sched[b, stream, head, SC_V],
+            v_enter,
             gap,
             vf[b, VF_V, tail],
             sched[b, stream, head, SC_T_HW],
@@ -214,23 +214,32 @@ def _best_lane_arrivals(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel(inline=True)
+def _waiting(S: tuple, b: int, stream: int) -> int:
+    """How many of entrance queue `stream`'s drawn arrivals are due and still waiting."""
+    vf, vi, wf, wi, lanes, sched = S
+    t, q_len = wf[b, WF_T], sched.shape[2]
+    head, count = wi[b, WI_HEAD_RIGHT + stream], wi[b, WI_COUNT_RIGHT + stream]
+    queue = 0
+    while queue < count and sched[b, stream, (head + queue) % q_len, SC_T] <= t:
+        queue += 1
+    return queue
+
+
+@kernel(inline=True)
 def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
     """The drawn arrivals whose time has come enter (`_enter`), each lane's into that lane
     (`traffic.entrance_lane = "drawn"`) or into the best lane (`"best"`,
     `_best_lane_arrivals`); otherwise they wait; nobody is dropped. Queue lengths (per drawn
     lane) are counted every step."""
     vf, vi, wf, wi, lanes, sched = S
-    t = wf[b, WF_T]
-    q_len = sched.shape[2]
     if p[P_ENTRANCE_BEST] > 0.0:
         _best_lane_arrivals(S, b, p)
+    else:
+        for lane in range(2):
+            if _due(S, b, lane):
+                _enter(S, b, p, lane, lane)
     for lane in range(2):
-        if p[P_ENTRANCE_BEST] == 0.0 and _due(S, b, lane):
-            _enter(S, b, p, lane, lane)
-        head, count = wi[b, WI_HEAD_RIGHT + lane], wi[b, WI_COUNT_RIGHT + lane]
-        queue = 0
-        while queue < count and sched[b, lane, (head + queue) % q_len, SC_T] <= t:
-            queue += 1
+        queue = _waiting(S, b, lane)
         wi[b, WI_QUEUE_RIGHT + lane] = queue
         wi[b, WI_QUEUE_MAX] = max(wi[b, WI_QUEUE_MAX], queue)
     if p[P_RAMP_FLOW] > 0.0:
@@ -278,8 +287,6 @@ def ramp_arrivals(S: tuple, b: int, p: np.ndarray) -> None:
             head = (head + 1) % q_len
             count -= 1
             wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st] = head, count
-    queue = 0
-    while queue < count and sched[b, st, (head + queue) % q_len, SC_T] <= t:
-        queue += 1
+    queue = _waiting(S, b, st)
     wi[b, WI_RAMP_QUEUE] = queue
     wi[b, WI_RAMP_QUEUE_MAX] = max(wi[b, WI_RAMP_QUEUE_MAX], queue)
