@@ -491,7 +491,8 @@ def _validate_merge(args: argparse.Namespace, use_sumo: bool) -> int:
     from marlmerge.validation.merge import validate_merge
 
     cfg = resolve_config(args.scenario)
-    default_out = "docs/validation/merge" + ("_best" if cfg.traffic.entrance_lane == "best" else "")
+    best, zipper = cfg.traffic.entrance_lane == "best", cfg.ramp.cooperation == "zipper"
+    default_out = "docs/validation/merge" + "_best" * best + "_zipper" * zipper
     out = args.out if args.out != "docs/validation" else default_out
     result = validate_merge(cfg, out, use_sumo, update_reference=args.update_reference)
     from marlmerge.validation.merge import VARIANTS

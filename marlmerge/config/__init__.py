@@ -30,6 +30,7 @@ from marlmerge.config.scenario import (
     MAX_WEIGHT,
     MPH_TO_MPS,
     OBSERVATION_LAYOUTS,
+    RAMP_COOPERATIONS,
     DriverConfig,
     EgoConfig,
     InteractionConfig,
@@ -51,6 +52,7 @@ from marlmerge.config.scenario import (
 __all__ = [
     "EGO_JOINS",
     "ENTRANCE_LANES",
+    "RAMP_COOPERATIONS",
     "MAX_HIGHWAY_AGENTS",
     "MAX_LATENCY_S",
     "MAX_WARMUP_S",

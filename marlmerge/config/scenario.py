@@ -32,6 +32,8 @@ OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel")
 """Values of `ego.observation` (the tables: `marlmerge.sim.observation.EGO_LAYOUTS`)."""
 RAMP_JOINS = ("forced", "when_safe")
 """Values of `ramp.join`."""
+RAMP_COOPERATIONS = ("head", "zipper")
+"""Values of `ramp.cooperation`."""
 EGO_JOINS = ("forced", "chosen")
 """Values of `ego.join`."""
 ENTRANCE_LANES = ("drawn", "best")
@@ -203,6 +205,14 @@ class RampConfig:
     `driver.safe_brake_mps2` by IDM; the zone is then a parallel acceleration lane that ends at
     the merge point, where a vehicle that has not joined stops, following the lane's end by
     IDM as a standing obstacle all along the ramp, as SUMO's vehicles do)."""
+    cooperation: str = "head"
+    """Whom the mainline's right-lane drivers yield to under ramp flow: "head" (the paper's
+    profiles, towards the ramp's first vehicle only: cooperative drivers yield to it, adversarial
+    ones close the gap ahead of it) or "zipper" (as SUMO's LC2013 cooperative speed adjustment:
+    every neutral or cooperative right-lane driver yields to the ramp vehicle in the merge zone
+    nearest ahead of it between it and its leader, by IDM behind it as a virtual leader, braking
+    at most `driver.yield_max_brake_mps2`; adversarial drivers still close the gap ahead of the
+    ramp's first vehicle)."""
 
     @property
     def flowing(self) -> bool:
@@ -536,13 +546,23 @@ def _ramp_checks(cfg: ScenarioConfig) -> list[tuple[bool, str]]:
                 cfg.ramp.join == "forced",
                 f"ramp.join = {cfg.ramp.join!r} needs ramp flow (ramp.flow_vph > 0); the paper's "
                 "one ego joins by force",
-            )
+            ),
+            (
+                cfg.ramp.cooperation == "head",
+                f"ramp.cooperation = {cfg.ramp.cooperation!r} needs ramp flow (ramp.flow_vph > 0); "
+                "the paper's drivers yield to its one ego",
+            ),
         ]
     flow = cfg.ramp.flow_vph
     return [
         (
             cfg.ramp.join in RAMP_JOINS,
             f"ramp.join must be one of {', '.join(map(repr, RAMP_JOINS))}, got {cfg.ramp.join!r}",
+        ),
+        (
+            cfg.ramp.cooperation in RAMP_COOPERATIONS,
+            "ramp.cooperation must be one of "
+            f"{', '.join(map(repr, RAMP_COOPERATIONS))}, got {cfg.ramp.cooperation!r}",
         ),
         (
             not cfg.sensing.active,

@@ -297,6 +297,7 @@ _PARAMS = (
     "ego_join_chosen",
     "obs_on_ramp_col",
     "entrance_best",
+    "ramp_zipper",
 )
 (
     P_DT,
@@ -383,6 +384,7 @@ _PARAMS = (
     P_JOIN_CHOSEN,
     P_OBS_ON_RAMP,
     P_ENTRANCE_BEST,
+    P_RAMP_ZIPPER,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -495,4 +497,5 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "ego_join_chosen": float(e.chooses_join),
         "obs_on_ramp_col": float(on_ramp_column(cfg)),
         "entrance_best": float(cfg.traffic.entrance_lane == "best"),
+        "ramp_zipper": float(cfg.ramp.cooperation == "zipper"),
     }

@@ -27,6 +27,7 @@ from marlmerge.sim.drivers import ego_merges_ahead, idm, profile_accel
 from marlmerge.sim.entrance import arrivals
 from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import (
+    ADVERSARIAL,
     COOPERATIVE,
     EGO,
     EV_CHANGE,
@@ -66,6 +67,7 @@ from marlmerge.sim.layout import (
     P_MAX_EPISODE,
     P_RAMP_FLOW,
     P_RAMP_WHEN_SAFE,
+    P_RAMP_ZIPPER,
     P_S0,
     P_SAFE_BRAKE,
     P_SENSING,
@@ -322,9 +324,11 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) 
     filtering = pending and p[P_FILTER] > 0.0 and wi[b, WI_OUTCOME] == OUTCOME_NONE
     ramp_a = _ramp_accel(S, b, p, dp, ego_a, ego_idm, x_e, v_e) if filtering else 0.0
     moved = 0
+    zipper = flowing and p[P_RAMP_ZIPPER] > 0.0
     for lane in range(2):
         n = wi[b, WI_N_RIGHT + lane]
         x_lead, v_lead = INF, 0.0
+        j_ramp = 0  # ramp flow, zipper: the ramp list's first vehicle not yet passed
         for i in range(n):
             s = lanes[b, lane, i]
             x, v = vf[b, VF_X, s], vf[b, VF_V, s]
@@ -338,6 +342,9 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) 
                 wf[b, WF_EGO_CMD] = acc
             elif flags & EV_CONTROLLED:
                 acc = vf[b, VF_ACC, s]
+            elif zipper and lane == RIGHT and vi[b, VI_PROFILE, s] != ADVERSARIAL:
+                acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, False, x_m, v_m)
+                acc, j_ramp = _zipper_yield(S, b, p, dp, s, x, v, x_lead, j_ramp, acc)
             else:
                 # ramp flow: a driver alongside or past the ramp vehicle does not yield to it
                 # (with joins when safe, both would wait for ever)
@@ -362,6 +369,45 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) 
     if wi[b, WI_N_RAMP] > 0:
         moved += _advance_ramp(S, b, p, dp)
     return moved
+
+
+@kernel(inline=True)
+def _zipper_yield(
+    S: tuple,
+    b: int,
+    p: np.ndarray,
+    dp: tuple,
+    s: int,
+    x: float,
+    v: float,
+    x_lead: float,
+    j: int,
+    acc: float,
+) -> tuple:
+    """`ramp.cooperation = "zipper"`: right-lane driver `s` at x (m), v (m/s), its leader at
+    x_lead, yields to the ramp vehicle in the merge zone nearest ahead of it and behind its
+    leader (pre-step state): its acceleration `acc` capped by IDM behind that vehicle, braking at
+    most `yield_max_brake_mps2` for it. Not for a ramp vehicle less than a length plus the jam
+    gap ahead (the driver drives on past it), nor beyond the interaction range. j: the first
+    ramp-list entry not behind x_lead (the lane is swept downstream first, so the search goes on
+    from there). Returns (acc, j)."""
+    vf, vi, wf, wi, lanes, sched = S
+    n = wi[b, WI_N_RAMP]
+    while j < n and vf[b, VF_X, lanes[b, RAMP_LIST, j]] >= x_lead:
+        j += 1
+    r = -1
+    while j < n and vf[b, VF_X, lanes[b, RAMP_LIST, j]] > max(x, p[P_X_ZONE_START]):
+        r = lanes[b, RAMP_LIST, j]
+        j += 1
+    if r < 0:
+        return acc, j
+    dx = vf[b, VF_X, r] - x
+    if dx <= dp[6] + dp[2] or dx >= dp[4]:
+        return acc, j
+    a_yield = idm(
+        v, dx - dp[6], vf[b, VF_V, r], vf[b, VF_V0, s], vf[b, VF_T, s], dp[0], dp[1], dp[2], dp[3]
+    )
+    return min(acc, max(a_yield, -dp[5])), j
 
 
 @kernel

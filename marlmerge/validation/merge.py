@@ -178,6 +178,7 @@ def validate_merge(
     result["all_targets_met"] = any(result[name]["all_targets_met"] for name in VARIANTS)
     result["sumo_version"], result["sumo_ran"] = version, use_sumo
     result["entrance_lane"] = cfg.traffic.entrance_lane
+    result["cooperation"] = cfg.ramp.cooperation
     (out / "results.json").write_text(json.dumps(result, indent=1))
     (out / "README.md").write_text(markdown(result))
     return result
@@ -220,6 +221,8 @@ def _intro(result: dict[str, Any]) -> list[str]:
         "lane changes within 2x.",
         "",
         ENTRANCE_TEXT[result.get("entrance_lane", "drawn")],
+        "",
+        COOPERATION_TEXT[result.get("cooperation", "head")],
     ]
 
 
@@ -229,6 +232,18 @@ ENTRANCE_TEXT = {
     "best": "Entrance: the mainline's arrivals enter in the order of their drawn times, each in "
     'the best lane (`traffic.entrance_lane = "best"`, SUMO `departLane="best"`: the lane whose '
     "last vehicle is farthest from the entrance).",
+}
+
+
+COOPERATION_TEXT = {
+    "head": "Mainline cooperation: marlmerge's drivers yield by profile to the ramp's first "
+    'vehicle (`ramp.cooperation = "head"`: cooperative drivers yield to it, adversarial ones '
+    "close the gap ahead of it); SUMO's by LC2013's cooperative speed adjustment.",
+    "zipper": "Mainline cooperation: every neutral or cooperative right-lane driver yields, "
+    "braking at most `driver.yield_max_brake_mps2`, to the ramp vehicle in the merge zone "
+    'nearest ahead of it in its gap (`ramp.cooperation = "zipper"`, as SUMO\'s LC2013 '
+    "cooperative speed adjustment); adversarial drivers close the gap ahead of the ramp's "
+    "first vehicle.",
 }
 
 
