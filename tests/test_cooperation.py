@@ -39,7 +39,7 @@ def _held_ramp_vehicle(cooperation: str) -> tuple[TrafficCore, int]:
 
 def _hold_first(core: TrafficCore) -> None:
     roster, _ = core.ramp_agents(8)
-    cmd = np.where(roster.mask, np.nan, np.nan)
+    cmd = np.full(roster.mask.shape, np.nan)  # every other ramp vehicle drives by IDM
     first = roster.slots[0, 0]
     if roster.mask[0, 0] and core.state.x_m[0, first] > -140.0:
         cmd[0, 0] = -4.5

@@ -211,8 +211,8 @@ class RampConfig:
     ones close the gap ahead of it) or "zipper" (as SUMO's LC2013 cooperative speed adjustment:
     every neutral or cooperative right-lane driver yields to the ramp vehicle in the merge zone
     nearest ahead of it between it and its leader, by IDM behind it as a virtual leader, braking
-    at most `driver.yield_max_brake_mps2`; adversarial drivers still close the gap ahead of the
-    ramp's first vehicle)."""
+    at most `driver.yield_max_brake_mps2`, and drives on past one less than a length and a jam
+    gap ahead; adversarial drivers still close the gap ahead of the ramp's first vehicle)."""
 
     @property
     def flowing(self) -> bool:
