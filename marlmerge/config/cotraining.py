@@ -16,6 +16,9 @@ HIGHWAY_ALGORITHMS = ("quadq", "ppo")
 HIGHWAY_ACTIONS = ("accel_offset", "desired_speed")
 """What a learned highway driver chooses (`marlmerge.learners.highway`): an adjustment to its
 IDM acceleration, or the desired speed its IDM drives towards (PPO only)."""
+HIGHWAY_ENVELOPES = ("none", "safe")
+"""What limits a learned highway driver besides its action bounds
+(`marlmerge.policies.envelope`): nothing, or a plausible driver's envelope."""
 PPO_CRITICS = ("local", "central")
 """IPPO's per-agent critic or MAPPO's centralised one (`marlmerge.learners.ppo`)."""
 
@@ -118,6 +121,13 @@ class CoTrainConfig(RunConfig):
     what it can be, never a car that stops dead or brakes out of the blue."""
     highway_speed_factor_bounds: tuple[float, float] = num((0.5, 1.1), 0.1, 2.0, ordered=True)
     """"desired_speed": the range of the chosen desired speed, x the speed limit."""
+    highway_envelope: str = "none"
+    """"safe": every acceleration of a learned driver, in training and wherever its policy file
+    drives, stays within a plausible driver's envelope (`marlmerge.policies.envelope`): never
+    so fast that it could not stop behind its leader braking as hard as it can, never braking
+    harder than the drivers' comfortable `driver.comfort_brake_mps2` unless stopping behind its
+    leader asks for it. It can still hang back, drive slowly or speed up into a gap. "none"
+    (default): the action bounds only."""
     ppo: PpoConfig = field(default_factory=PpoConfig)
 
     def __post_init__(self) -> None:
@@ -130,6 +140,11 @@ class CoTrainConfig(RunConfig):
         if self.highway_action not in HIGHWAY_ACTIONS:
             raise ValueError(
                 f"highway_action must be one of {HIGHWAY_ACTIONS}, got {self.highway_action!r}"
+            )
+        if self.highway_envelope not in HIGHWAY_ENVELOPES:
+            raise ValueError(
+                f"highway_envelope must be one of {HIGHWAY_ENVELOPES}, "
+                f"got {self.highway_envelope!r}"
             )
         if self.highway_action == "desired_speed" and self.highway_algorithm != "ppo":
             raise ValueError(

@@ -15,6 +15,7 @@ from marlmerge.config import ScenarioConfig, from_dict, to_dict
 from marlmerge.io.policy_file import read_policy, weights_of, write_policy
 from marlmerge.learners.ppo import greedy_offset, make_actor_net
 from marlmerge.learners.quadq import QuadraticQNet
+from marlmerge.policies.envelope import make_envelope
 from marlmerge.policies.scripted import ScriptedHighwayPolicy
 from marlmerge.sim.observation import HIGHWAY_FEATURES
 
@@ -29,7 +30,9 @@ OFFSET_BOUNDS_MPS2 = (-3.0, 3.0)
 class ResidualHighwayPolicy:
     """A learned highway driver: the acceleration of a neutral IDM driver acting on the same
     observation (`ScriptedHighwayPolicy("neutral")`) plus a learned adjustment `offset(obs)`,
-    clipped to `sim.highway_agent_accel_bounds_mps2`. [..., K, 12] -> [..., K, 1] m/s^2.
+    clipped to `sim.highway_agent_accel_bounds_mps2` and, with `envelope = "safe"`, limited to
+    a plausible driver's envelope (`marlmerge.policies.envelope`). [..., K, 12] -> [..., K, 1]
+    m/s^2.
 
     The quadratic-Q network learns the adjustment (symmetric bounds, so an untrained network
     drives like IDM): learning starts from an ordinary driver and searches for the deviations that
@@ -37,11 +40,15 @@ class ResidualHighwayPolicy:
     """
 
     def __init__(
-        self, offset: Callable[[Tensor], Tensor | dict[str, Tensor]], scenario: ScenarioConfig
+        self,
+        offset: Callable[[Tensor], Tensor | dict[str, Tensor]],
+        scenario: ScenarioConfig,
+        envelope: str = "none",
     ) -> None:
         self.offset = offset
         self.idm = ScriptedHighwayPolicy("neutral", scenario)
         self.low, self.high = scenario.sim.highway_agent_accel_bounds_mps2
+        self.envelope = make_envelope(envelope, scenario)
 
     def base(self, obs: Tensor) -> Tensor:
         """The IDM part, [..., 1] m/s^2 (0 for masked-out, all-zero observations)."""
@@ -59,14 +66,23 @@ class ResidualHighwayPolicy:
         return self._add(obs, offset)
 
     def _add(self, obs: Tensor, offset: Tensor) -> Tensor:
-        return (self.base(obs) + offset).clamp(self.low, self.high)
+        accel = (self.base(obs) + offset).clamp(self.low, self.high)
+        return within(self.envelope, obs, accel)
+
+
+def within(envelope: Callable | None, obs: Tensor, accel: Tensor) -> Tensor:
+    """`accel` [..., K, 1] limited to `envelope` (None: unchanged)."""
+    if envelope is None:
+        return accel
+    return torch.as_tensor(envelope(obs.numpy(), accel.numpy()))
 
 
 class DesiredSpeedHighwayPolicy:
     """A learned highway driver that chooses how fast it wants to go: a neutral IDM driver whose
     desired speed is `factor(obs)` x the speed limit ([..., K, 1], the learner's action in
     `CoTrainConfig.highway_speed_factor_bounds`), clipped to
-    `sim.highway_agent_accel_bounds_mps2`. [..., K, 12] -> [..., K, 1] m/s^2.
+    `sim.highway_agent_accel_bounds_mps2` and limited to `envelope` as `ResidualHighwayPolicy`.
+    [..., K, 12] -> [..., K, 1] m/s^2.
 
     Every acceleration it produces is a car-following driver's: it can drive slowly, speed up
     into a gap or hang back, but never stop dead or brake with a free road ahead. IDM smooths the
@@ -74,12 +90,16 @@ class DesiredSpeedHighwayPolicy:
     """
 
     def __init__(
-        self, factor: Callable[[Tensor], Tensor | dict[str, Tensor]], scenario: ScenarioConfig
+        self,
+        factor: Callable[[Tensor], Tensor | dict[str, Tensor]],
+        scenario: ScenarioConfig,
+        envelope: str = "none",
     ) -> None:
         self.factor = factor
         self.idm = ScriptedHighwayPolicy("neutral", scenario)
         self.limit_mps = scenario.road.speed_limit_mps
         self.low, self.high = scenario.sim.highway_agent_accel_bounds_mps2
+        self.envelope = make_envelope(envelope, scenario)
 
     @torch.no_grad()
     def __call__(self, obs: Tensor) -> Tensor | dict[str, Tensor]:
@@ -89,7 +109,7 @@ class DesiredSpeedHighwayPolicy:
         factor = out["action"] if isinstance(out, dict) else out
         v0 = factor.squeeze(-1).numpy().astype(np.float64) * self.limit_mps  # [..., K] m/s
         a = np.nan_to_num(self.idm(obs.numpy(), v0), nan=0.0, posinf=0.0, neginf=self.low)
-        accel = torch.as_tensor(a).clamp(self.low, self.high)
+        accel = within(self.envelope, obs, torch.as_tensor(a).clamp(self.low, self.high))
         return {**out, "action": accel} if isinstance(out, dict) else accel
 
 
@@ -97,13 +117,15 @@ def make_driver(
     action: str,
     choice: Callable[[Tensor], Tensor | dict[str, Tensor]],
     scenario: ScenarioConfig,
+    envelope: str = "none",
 ) -> ResidualHighwayPolicy | DesiredSpeedHighwayPolicy:
-    """The learned driver of `CoTrainConfig.highway_action` around the learner's `choice`."""
+    """The learned driver of `CoTrainConfig.highway_action` around the learner's `choice`,
+    within `CoTrainConfig.highway_envelope`."""
     if action == "desired_speed":
-        return DesiredSpeedHighwayPolicy(choice, scenario)
+        return DesiredSpeedHighwayPolicy(choice, scenario, envelope)
     if action != "accel_offset":
         raise ValueError(f"unknown highway action {action!r} ('accel_offset', 'desired_speed')")
-    return ResidualHighwayPolicy(choice, scenario)
+    return ResidualHighwayPolicy(choice, scenario, envelope)
 
 
 def frozen_net(
@@ -137,11 +159,13 @@ def snapshot_policy(
     bounds: tuple[float, float] = OFFSET_BOUNDS_MPS2,
     algorithm: str = "quadq",
     action: str = "accel_offset",
+    envelope: str = "none",
 ) -> HighwayPolicy:
     """The greedy highway policy of a pool snapshot: weights of the learned choice (of
     `algorithm`'s network: an adjustment in m/s^2 or a desired-speed factor, per `action`),
-    squashed into `bounds`."""
-    return make_driver(action, greedy_adjustment(algorithm, state, hidden, bounds), scen)
+    squashed into `bounds`, within `envelope`."""
+    choice = greedy_adjustment(algorithm, state, hidden, bounds)
+    return make_driver(action, choice, scen, envelope)
 
 
 def save_highway_policy(
@@ -153,8 +177,11 @@ def save_highway_policy(
 ) -> None:
     """A highway group's policy: the network's weights and the `bounds` its greedy action is
     squashed into (stored, so the file reloads as it was trained); the file's algorithm is
-    `cfg.highway_algorithm` + "-residual" (an adjustment) or "-speed" (a desired speed)."""
+    `cfg.highway_algorithm` + "-residual" (an adjustment) or "-speed" (a desired speed); its
+    envelope (`cfg.highway_envelope`) is stored too, so the driver reloads within it."""
     state = {"net": state, "hidden": cfg.hidden, "profile": cfg.profile}
+    if getattr(cfg, "highway_envelope", "none") != "none":  # files without one: "none"
+        state["envelope"] = cfg.highway_envelope
     kind = "speed" if getattr(cfg, "highway_action", "") == "desired_speed" else "residual"
     algorithm = f"{getattr(cfg, 'highway_algorithm', 'quadq')}-{kind}"
     write_policy(path, "highway", algorithm, bounds, state, to_dict(cfg), to_dict(scen))
@@ -168,5 +195,8 @@ def load_highway_policy(path: str | Path) -> HighwayPolicy:
     state = saved["policy_state"]
     algorithm, kind = saved["algorithm"].split("-")
     action = "desired_speed" if kind == "speed" else "accel_offset"
+    envelope = state.get("envelope", "none")
     with weights_of(path):
-        return snapshot_policy(state["net"], state["hidden"], scen, (low, high), algorithm, action)
+        return snapshot_policy(
+            state["net"], state["hidden"], scen, (low, high), algorithm, action, envelope
+        )

@@ -281,7 +281,13 @@ def highway_snapshot(
 ) -> HighwayPolicy:
     """The greedy highway policy of pool weights of `cfg`'s highway learner and action."""
     return snapshot_policy(
-        weights, cfg.hidden, scen, highway_bounds(cfg), cfg.highway_algorithm, cfg.highway_action
+        weights,
+        cfg.hidden,
+        scen,
+        highway_bounds(cfg),
+        cfg.highway_algorithm,
+        cfg.highway_action,
+        cfg.highway_envelope,
     )
 
 
@@ -522,13 +528,15 @@ class CoTrainRun:
         opponents: list[HighwayPolicy] = []
         if kind == "adversary":
             env.set_opponent_mix(1, 0.0)
-            residual = ResidualHighwayPolicy(lambda obs: hw.act(obs)["action"], self.scen)
+            residual = ResidualHighwayPolicy(
+                lambda obs: hw.act(obs)["action"], self.scen, cfg.highway_envelope
+            )
             if isinstance(hw.learner, PPOHighwayLearner):
                 hw.exploring = True  # PPO learns from its own samples
                 rows = functools.partial(
                     ppo_highway_rows, learner=hw.learner, critic=cfg.ppo.critic
                 )
-                residual = make_driver(cfg.highway_action, hw.act, self.scen)
+                residual = make_driver(cfg.highway_action, hw.act, self.scen, cfg.highway_envelope)
             else:
                 explore(hw, cfg.highway_sigma_start, cfg.highway_sigma_end, length // 2)
                 rows = functools.partial(highway_rows, residual=residual)
