@@ -100,14 +100,17 @@ def test_a_policy_file_keeps_its_envelope(tmp_path):
 
 
 @pytest.mark.slow
-def test_an_enveloped_adversary_trains_and_its_policy_file_keeps_the_envelope(tmp_path):
+@pytest.mark.parametrize("learner", ["quadq", "ppo-speed"])
+def test_an_enveloped_adversary_trains_and_its_policy_file_keeps_the_envelope(tmp_path, learner):
     from test_cotrain import TINY
+    from test_ppo import TINY as PPO_TINY
 
     from marlmerge.training.cotrain import cotrain, load_cotrain_config
 
+    extra = {"highway_action": "desired_speed", **PPO_TINY} if learner == "ppo-speed" else TINY
     cfg = load_cotrain_config(
         "cotrain",
-        **{**TINY, "rounds": 1, "ego_sim_steps": 0, "select_episodes": 0},
+        **{**extra, "rounds": 1, "ego_sim_steps": 0, "select_episodes": 0},
         highway_envelope="safe",
     )
     cotrain(cfg, tmp_path, progress=False)
