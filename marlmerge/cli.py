@@ -259,7 +259,7 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     if args.highway:
         from marlmerge.learners.highway import load_highway_policy
 
-        highway = load_highway_policy(args.highway)
+        highway = load_highway_policy(args.highway, scen)
     rec = run_episodes(policy, scen, args.episodes, args.seed, args.worlds, highway)
     ev = summarize(rec)
     if args.fairness:
@@ -588,7 +588,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument(
         "--highway",
         default=None,
-        help="a saved highway policy (run folder or highway_policy.pt) driving the highway agents",
+        help="a saved highway policy (run folder or highway_policy.pt) driving the highway "
+        "agents, or 'edge': the scripted driver at a plausible envelope's edge",
     )
     e.add_argument(
         "--fairness",
@@ -756,7 +757,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--seed", type=_at_least(0), default=1_000_000, help="first road seed (held-out)"
     )
     r.add_argument("--view", choices=("merge", "follow"), default="merge")
-    r.add_argument("--highway", default=None, help="a saved highway policy driving the agents")
+    r.add_argument(
+        "--highway", default=None, help="a saved highway policy driving the agents, or 'edge'"
+    )
     r.add_argument("--out", default="runs/episode.mp4", help="video file (.mp4 or .gif)")
     r.set_defaults(func=render_cmd)
 

@@ -121,3 +121,25 @@ def test_an_enveloped_adversary_trains_and_its_policy_file_keeps_the_envelope(tm
     accel = driver(obs)
     assert accel[0, 0] == SCEN.sim.highway_agent_accel_bounds_mps2[0]
     assert accel[1, 0] >= -SCEN.driver.comfort_brake_mps2
+
+
+def test_the_edge_driver_is_the_envelopes_edge_in_evaluate_and_the_grid(capsys):
+    """`--highway edge` / `+highway:edge`: IDM + 3 m/s^2 within the envelope, on the scenario it
+    drives in; a plausible driver (no collisions of its own) that presses gap acceptance."""
+    from marlmerge.cli import main
+    from marlmerge.evaluation.grid import parse_condition
+    from marlmerge.learners.highway import EDGE_DRIVER, ResidualHighwayPolicy, edge_driver
+
+    cond = parse_condition("grid_moderate_mixed+highway:edge")
+    assert cond.highway == (EDGE_DRIVER,) and cond.label.endswith("+ edge drivers")
+    with pytest.raises(ValueError, match="'edge' needs the scenario"):
+        load_highway_policy(EDGE_DRIVER)
+    obs = torch.as_tensor(
+        _obs([20.0, 30.0, 10.0], [150.0, 20.0, 1.0], [0.0, 30.0, 0.0]), dtype=torch.float32
+    )
+    manual = ResidualHighwayPolicy(lambda o: torch.full((*o.shape[:-1], 1), 3.0), SCEN, "safe")
+    assert torch.equal(load_highway_policy(EDGE_DRIVER, SCEN)(obs), manual(obs))
+    assert edge_driver(SCEN)(obs)[0, 0] == SCEN.sim.highway_agent_accel_bounds_mps2[1]
+    assert main(["evaluate", "gap", "--highway", "edge", "--episodes", "40", "--seed", "7"]) == 0
+    out = capsys.readouterr().out
+    assert "own-fault collisions in 0.0% of episodes" in out

@@ -86,8 +86,11 @@ class Condition:
 
 def parse_condition(spec: str) -> Condition:
     """`PRESET`, `[label=]PRESET+highway:GLOB` (GLOB matches run folders holding a
-    `highway_policy.pt`, or such files) or `[label=]PRESET+sensing:SENSING_PRESET` (the ego's
+    `highway_policy.pt`, or such files; `edge`: the scripted edge driver,
+    `marlmerge.learners.highway.edge_driver`) or `[label=]PRESET+sensing:SENSING_PRESET` (the ego's
     sensor of that preset's `[sensing]` on the preset's roads)."""
+    from marlmerge.learners.highway import EDGE_DRIVER
+
     label, _, body = spec.rpartition("=")
     preset, plus, learned = body.partition("+")
     scen = resolve_config(preset)
@@ -102,6 +105,8 @@ def parse_condition(spec: str) -> Condition:
             f"unknown condition {spec!r} (use PRESET, [label=]PRESET+highway:GLOB or "
             "[label=]PRESET+sensing:PRESET)"
         )
+    if pattern == EDGE_DRIVER:
+        return Condition(preset, label or f"{condition_label(scen)} + edge drivers", (pattern,))
     found = tuple(
         m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")
     ) or (pattern,)
@@ -195,7 +200,7 @@ def run_cell(cell: Cell) -> list[dict]:
         cell.seed,
         cell.worlds,
         record=True,
-        highway_policy=None if cell.highway is None else load_highway_policy(cell.highway),
+        highway_policy=None if cell.highway is None else load_highway_policy(cell.highway, scen),
         road_seeds=road_seeds(cell.seed, scen.name, cell.episodes),
     )
     return [

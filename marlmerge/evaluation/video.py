@@ -91,7 +91,7 @@ def render_episodes(
     if highway is not None:
         from marlmerge.learners.highway import load_highway_policy
 
-        highway_policy = load_highway_policy(highway)
+        highway_policy = load_highway_policy(highway, cfg)
     frames, outcomes = record_episodes(policy, cfg, episodes, seed, view, highway_policy)
     path = write_video(out, frames, fps=1.0 / cfg.sim.dt_s)
     return path, len(frames), outcomes

@@ -187,8 +187,29 @@ def save_highway_policy(
     write_policy(path, "highway", algorithm, bounds, state, to_dict(cfg), to_dict(scen))
 
 
-def load_highway_policy(path: str | Path) -> HighwayPolicy:
-    """The greedy shared policy of a saved highway group (`highway_policy.pt` or its folder)."""
+EDGE_DRIVER = "edge"
+"""The name, in place of a run folder, of the scripted driver at a plausible envelope's edge."""
+
+
+def edge_driver(scenario: ScenarioConfig) -> ResidualHighwayPolicy:
+    """The scripted driver at the edge of the plausible envelope (`highway_envelope = "safe"`):
+    it always asks for IDM + 3 m/s^2 (the top of a learned adjustment), so it drives as fast as
+    it safely can, up to the fastest scripted driver's speed, closing every gap it may. What
+    learned adversaries within the envelope converge to (docs/cotraining.md); no learning, so it
+    is the same on every machine."""
+    high = OFFSET_BOUNDS_MPS2[1]
+    return ResidualHighwayPolicy(
+        lambda obs: torch.full((*obs.shape[:-1], 1), high), scenario, "safe"
+    )
+
+
+def load_highway_policy(path: str | Path, scenario: ScenarioConfig | None = None) -> HighwayPolicy:
+    """The greedy shared policy of a saved highway group (`highway_policy.pt` or its folder),
+    or, for `EDGE_DRIVER`, the edge driver on `scenario` (the one it drives in)."""
+    if str(path) == EDGE_DRIVER:
+        if scenario is None:
+            raise ValueError(f"highway policy {EDGE_DRIVER!r} needs the scenario it drives in")
+        return edge_driver(scenario)
     saved = read_policy(path, "highway")
     scen = from_dict(ScenarioConfig, saved["scenario"])
     low, high = saved["action_bounds_mps2"]
