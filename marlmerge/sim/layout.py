@@ -298,6 +298,7 @@ _PARAMS = (
     "obs_on_ramp_col",
     "entrance_best",
     "ramp_zipper",
+    "lc_sees_ramp",
 )
 (
     P_DT,
@@ -385,6 +386,7 @@ _PARAMS = (
     P_OBS_ON_RAMP,
     P_ENTRANCE_BEST,
     P_RAMP_ZIPPER,
+    P_LC_SEES_RAMP,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -498,4 +500,5 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "obs_on_ramp_col": float(on_ramp_column(cfg)),
         "entrance_best": float(cfg.traffic.entrance_lane == "best"),
         "ramp_zipper": float(cfg.ramp.cooperation == "zipper"),
+        "lc_sees_ramp": float(cfg.driver.lane_change_sees_ramp),
     }

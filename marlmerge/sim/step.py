@@ -60,6 +60,7 @@ from marlmerge.sim.layout import (
     P_KEEP_RIGHT,
     P_LC_COOLDOWN,
     P_LC_EVERY,
+    P_LC_SEES_RAMP,
     P_LC_THRESHOLD,
     P_LEN,
     P_MAX_ACCEL,
@@ -536,7 +537,29 @@ def _mobil_wants_change(
         if ego_merges_ahead(x_e - x, v_e, p[P_X_OVERLAP] - x_e, v, p[P_INTERACTION_RANGE]):
             bias += p[P_YIELD_LC_BONUS]
     safe = (t_follow < 0 or a_nf_after >= -p[P_SAFE_BRAKE]) and gap_t > s0 and back_gap_t > s0
+    if safe and target == RIGHT and pending and p[P_LC_SEES_RAMP] > 0.0:
+        safe = _clear_of_ramp(S, b, s, p, dp, x_e, v_e)
     return safe and incentive + bias > p[P_LC_THRESHOLD]
+
+
+@kernel(inline=True)
+def _clear_of_ramp(
+    S: tuple, b: int, s: int, p: np.ndarray, dp: tuple, x_e: float, v_e: float
+) -> bool:
+    """`driver.lane_change_sees_ramp`: slot `s` moving right keeps clear of the ramp vehicle at
+    x_e once that is in the merge zone, as of a vehicle of the right lane: both bumper gaps
+    above s0, and neither brakes harder than `safe_brake_mps2` behind the other."""
+    vf, vi, wf, wi, lanes, sched = S
+    if x_e < p[P_X_ZONE_START]:
+        return True
+    length, s0, limit = p[P_LEN], p[P_S0], -p[P_SAFE_BRAKE]
+    x, v = vf[b, VF_X, s], vf[b, VF_V, s]
+    if x_e >= x:  # the ramp vehicle would lead the mover
+        gap = x_e - x - length
+        return gap > s0 and _idm_of(S, b, s, gap, v_e, dp) >= limit
+    gap = x - x_e - length
+    s_e = lanes[b, RAMP_LIST, 0] if wi[b, WI_N_RAMP] > 0 else EGO
+    return gap > s0 and _idm_of(S, b, s_e, gap, v, dp) >= limit
 
 
 @kernel(inline=True)
