@@ -131,10 +131,11 @@ class DriverConfig:
     safe_brake_mps2: float = positive(4.0, 12.0)
     """MOBIL safety criterion: a lane change may not make the new follower brake harder."""
     lane_change_sees_ramp: bool = False
-    """A driver moving right counts the ramp vehicle inside the merge zone as a vehicle of the
-    right lane: the change needs both bumper gaps to it above the jam gap and may not make it
-    brake harder than `safe_brake_mps2` (as for the new follower). False (the paper's): drivers
-    moving right ignore the vehicle about to join, and may move in beside it."""
+    """A driver moving right counts the ramp vehicle inside the merge zone (or reaching it before
+    the driver's next lane-change decision) as a vehicle of the right lane: the change needs
+    both bumper gaps to it above the jam gap and may not make either brake harder than
+    `safe_brake_mps2` behind the other. False (the paper's): drivers moving right ignore the
+    vehicle about to join, and may move in beside it."""
     lane_change_cooldown_s: float = num(3.0, 0.0, 60.0)
     """A vehicle does not change lanes again within this time."""
     lane_change_every_steps: int = num(10, 1, 1000)

@@ -547,10 +547,11 @@ def _clear_of_ramp(
     S: tuple, b: int, s: int, p: np.ndarray, dp: tuple, x_e: float, v_e: float
 ) -> bool:
     """`driver.lane_change_sees_ramp`: slot `s` moving right keeps clear of the ramp vehicle at
-    x_e once that is in the merge zone, as of a vehicle of the right lane: both bumper gaps
-    above s0, and neither brakes harder than `safe_brake_mps2` behind the other."""
+    x_e once that is in the merge zone or reaches it before the next lane-change decision (a
+    decision holds until then), as of a vehicle of the right lane: both bumper gaps above s0,
+    and neither brakes harder than `safe_brake_mps2` behind the other."""
     vf, vi, wf, wi, lanes, sched = S
-    if x_e < p[P_X_ZONE_START]:
+    if x_e + v_e * p[P_LC_EVERY] * p[P_DT] < p[P_X_ZONE_START]:
         return True
     length, s0, limit = p[P_LEN], p[P_S0], -p[P_SAFE_BRAKE]
     x, v = vf[b, VF_X, s], vf[b, VF_V, s]
