@@ -28,10 +28,8 @@ from marlmerge.evaluation.registry import make_policy, parse_policy, scenario_fo
 from marlmerge.evaluation.rollout import EgoPolicy, rollout_first_egos
 from marlmerge.policies.scripted import IdmEgoPolicy, joined
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS
-from marlmerge.sim.observation import EGO_FEATURES, EGO_SCALE, feature_index
 
 GRID_SEED = 2_000_000
-X = feature_index(EGO_FEATURES, "ego_position")
 
 
 def capped(shielded: EgoPolicy, scen: ScenarioConfig) -> EgoPolicy:
@@ -41,7 +39,7 @@ def capped(shielded: EgoPolicy, scen: ScenarioConfig) -> EgoPolicy:
     def policy(obs: torch.Tensor) -> torch.Tensor:
         a = shielded(obs).numpy().copy()  # [B, A]
         o = obs.numpy()
-        in_lane = joined(o, scen) | (o[..., X] * EGO_SCALE[X] >= scen.x_overlap_m)
+        in_lane = joined(o, scen)  # past the overlap point: the shield forces the join
         a[..., 0] = np.where(in_lane, np.minimum(a[..., 0], idm(o)[..., 0]), a[..., 0])
         return torch.as_tensor(a)
 

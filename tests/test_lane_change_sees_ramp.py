@@ -44,7 +44,7 @@ def test_a_driver_well_clear_of_the_ramp_vehicle_or_before_the_zone_still_moves_
 
 def test_the_option_removes_most_collisions_with_drivers_moving_in():
     """Roads where gap acceptance's ego was hit at the join by a driver moving in beside it (a
-    search of 100,000 moderate neutral roads; `docs/robustness.md`): with the option on, those
+    search of 100,000 moderate neutral roads; `docs/stress.md`): with the option on, those
     drivers stay in their lane."""
     keys = (5863, 7199, 55843, 70593, 71686)
     base = ScenarioConfig().replace(**{

@@ -180,15 +180,21 @@ def neighbours(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel(inline=True)
-def merging_vehicle(S: tuple, b: int) -> tuple:
-    """(pending, x_m, v_mps) of the ramp vehicle the mainline drivers react to: the ego while it
-    is on the ramp, or with ramp flow the ramp's first vehicle (the ramp list's head)."""
+def merging_slot(S: tuple, b: int) -> int:
+    """The slot of the ramp vehicle the mainline drivers react to: with ramp flow the ramp's
+    first vehicle (the ramp list's head), else the ego."""
     vf, vi, wf, wi, lanes, sched = S
-    if wi[b, WI_N_RAMP] > 0:
-        s = lanes[b, RAMP_LIST, 0]
-        return True, vf[b, VF_X, s], vf[b, VF_V, s]
-    pending = vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP
-    return pending, vf[b, VF_X, EGO], vf[b, VF_V, EGO]
+    return lanes[b, RAMP_LIST, 0] if wi[b, WI_N_RAMP] > 0 else EGO
+
+
+@kernel(inline=True)
+def merging_vehicle(S: tuple, b: int) -> tuple:
+    """(pending, x_m, v_mps) of the ramp vehicle the mainline drivers react to (`merging_slot`):
+    pending with ramp flow while the ramp holds a vehicle, else while the ego is on the ramp."""
+    vf, vi, wf, wi, lanes, sched = S
+    s = merging_slot(S, b)
+    pending = wi[b, WI_N_RAMP] > 0 or (vi[b, VI_ACTIVE, EGO] == 1 and vi[b, VI_LANE, EGO] == RAMP)
+    return pending, vf[b, VF_X, s], vf[b, VF_V, s]
 
 
 @kernel(inline=True)
@@ -559,8 +565,7 @@ def _clear_of_ramp(
         gap = x_e - x - length
         return gap > s0 and _idm_of(S, b, s, gap, v_e, dp) >= limit
     gap = x - x_e - length
-    s_e = lanes[b, RAMP_LIST, 0] if wi[b, WI_N_RAMP] > 0 else EGO
-    return gap > s0 and _idm_of(S, b, s_e, gap, v, dp) >= limit
+    return gap > s0 and _idm_of(S, b, merging_slot(S, b), gap, v, dp) >= limit
 
 
 @kernel(inline=True)
