@@ -785,11 +785,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_out(out: str | None, is_file: bool = False) -> None:
+    """`--out` that cannot be written is refused before any work starts: the folder (for a
+    file, its folder) or its nearest existing ancestor must be a writable folder."""
+    if out is None:
+        return
+    path = Path(out)
+    if not is_file and path.exists() and not path.is_dir():
+        raise ValueError(f"--out {out!r}: exists and is not a folder")
+    ancestor = path.parent if is_file else path
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"--out {out!r}: {str(ancestor)!r} is not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out!r}: {str(ancestor)!r} is not writable")
+
+
 def main(argv: list[str] | None = None) -> int:
     # torchrl logs INFO lines (buffer set-up, ...) in colour; a command prints its own progress
     os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
     args = build_parser().parse_args(argv)
     try:
+        check_out(getattr(args, "out", None), is_file=args.command == "render")
         return args.func(args)
     except ValueError as err:
         print(f"marlmerge: error: {err}", file=sys.stderr)

@@ -304,3 +304,40 @@ def test_a_seed_that_is_not_a_non_negative_integer_is_refused(seed):
         RampMergeEnv().reset(seed=seed)
     with pytest.raises(ValueError, match="seed"):
         TrafficCore(ScenarioConfig(), batch_size=1, seed=seed)
+
+
+def test_a_scenario_path_that_does_not_exist_is_not_the_preset_of_its_name(tmp_path, capsys):
+    from marlmerge.config.presets import find_preset
+
+    with pytest.raises(ValueError, match=r"scenario preset file '.*dense\.toml' does not exist"):
+        find_preset(tmp_path / "dense.toml")  # not envs/dense.toml
+    assert find_preset("envs/dense.toml").name == "dense.toml"  # the preset, from any directory
+    assert main(["evaluate", "hold", "--scenario", str(tmp_path / "dense.toml")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["grid", "stress", "render"])
+def test_an_out_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, command):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = str(blocker / ("x.gif" if command == "render" else "x"))
+    args = {
+        "grid": ["grid", "--policy", "hold", "--condition", "light"],
+        "stress": ["stress", "hold"],
+    }
+    argv = args.get(command, ["render", "hold"]) + ["--out", out]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--out {out!r}: {str(blocker)!r} is not a folder" in err
+    assert main(["grid", "--policy", "hold", "--condition", "light", "--out", str(blocker)]) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "key, value", [("budget_s", -1.0), ("budget_s", float("nan")), ("verify_episodes", 0)]
+)
+def test_stress_settings_name_the_key_and_the_value(key, value):
+    from marlmerge.evaluation.stress import StressSettings
+
+    with pytest.raises(ValueError, match=f"^{key} must be .*, got {value}$"):
+        StressSettings(**{key: value})

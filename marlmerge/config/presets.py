@@ -38,10 +38,13 @@ def preset_dir(kind: str) -> Path:
 def find_preset(name: str | Path, kind: str = "envs") -> Path:
     """A preset file: a path to an existing file, or a name looked up in the `kind` folder
     ("envs": scenarios, "trainers": training runs); an unknown name is a `ValueError` listing
-    the known ones."""
+    the known ones. A path in another folder that does not exist is an error too, not the preset
+    of the same name (`envs/NAME.toml` names the preset from any directory)."""
     path = Path(name)
     if path.exists() and (kind == "trainers" or path.suffix == ".toml"):
         return path
+    if path.parent != Path(".") and path.parent.name != kind:
+        raise ValueError(f"{_WHAT[kind]} file {str(name)!r} does not exist")
     folder = preset_dir(kind)
     candidate = folder / f"{path.stem}.toml"
     if candidate.exists():

@@ -91,8 +91,12 @@ class StressSettings:
             raise ValueError(f"box must be in (0, 0.5], got {self.box}")
         if not 0.0 < self.elite_fraction <= 0.5:
             raise ValueError(f"elite_fraction must be in (0, 0.5], got {self.elite_fraction}")
-        if self.verify_episodes < 1 or self.budget_s <= 0 or self.seed < 0:
-            raise ValueError("verify_episodes and budget_s must be positive, seed >= 0")
+        if self.verify_episodes < 1:
+            raise ValueError(f"verify_episodes must be >= 1, got {self.verify_episodes}")
+        if not self.budget_s > 0:
+            raise ValueError(f"budget_s must be > 0, got {self.budget_s}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
 
 
 class Evaluator:
