@@ -29,13 +29,14 @@ def test_the_heldout3_files_are_the_seeds_draw(tmp_path):
         assert load_scenario(committed) == load_scenario(path), path.name
 
 
-def test_the_heldout4_files_are_the_seeds_draw_and_differ_from_heldout3(tmp_path):
-    drawn = write_heldout_set(tmp_path, "heldout4")
+@pytest.mark.parametrize("prefix", ["heldout4", "heldout5"])
+def test_the_later_heldout_files_are_their_seeds_draw_and_differ_from_heldout3(tmp_path, prefix):
+    drawn = write_heldout_set(tmp_path, prefix)
     assert len(drawn) == 12
     for path in drawn:
         committed = preset_dir("envs") / path.name
         assert load_scenario(committed) == load_scenario(path), path.name
-        other = load_scenario(preset_dir("envs") / path.name.replace("heldout4", "heldout3"))
+        other = load_scenario(preset_dir("envs") / path.name.replace(prefix, "heldout3"))
         assert load_scenario(path).road != other.road
 
 

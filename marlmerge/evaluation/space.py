@@ -60,7 +60,10 @@ HELDOUT3_SEED = 20261202
 HELDOUT4_SEED = 20261203
 """The seed the fourth held-out set (`envs/heldout4_*`) was drawn with: committed before the
 round that added checkpoint selection to the hardened recipe."""
-HELDOUT_SETS = {"heldout3": HELDOUT3_SEED, "heldout4": HELDOUT4_SEED}
+HELDOUT5_SEED = 20261204
+"""The seed the fifth held-out set (`envs/heldout5_*`) was drawn with: committed before the
+round that added the left-lane watch to the shield (`@shield-left`)."""
+HELDOUT_SETS = {"heldout3": HELDOUT3_SEED, "heldout4": HELDOUT4_SEED, "heldout5": HELDOUT5_SEED}
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
 
@@ -110,7 +113,7 @@ def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None =
     """Write a held-out set drawn from `SPACE` (`HELDOUT_SETS`), `PREFIX_01.toml` ... into
     `folder`; `seed` defaults to the set's own."""
     seed = HELDOUT_SETS[prefix] if seed is None else seed
-    ordinal = {"heldout3": "third", "heldout4": "fourth"}.get(prefix, prefix)
+    ordinal = {"heldout3": "third", "heldout4": "fourth", "heldout5": "fifth"}.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
     for i, point in enumerate(heldout_points(n, seed), start=1):
         name = f"{prefix}_{i:02d}"
