@@ -1,22 +1,26 @@
-"""The shield with and without an IDM cap on the ego's command once it is in its lane.
+"""The gap-acceptance shield's options side by side, on the grid's roads.
 
-The gap-acceptance shield (`@shield`) judges the ramp vehicle's join and leaves it alone after
-it (the command stands from the overlap point on). This script measures what a shield that also
-caps the ego's acceleration at IDM's behind its leader, once it is in its lane, would change:
-the same roads as the grid (`marlmerge.evaluation.grid.road_seeds`, root seed 2,000,000), each
-learned run behind the shield, with and without the cap. `--sees-ramp` runs the conditions with
-`driver.lane_change_sees_ramp = true` (drivers who do not move right in beside a merging
-vehicle; the roads stay the same). Prints one JSON line per variant: episodes, collisions,
-success.
+`GapShield` (the grid's `@shield`) judges the ramp vehicle's join from its observation. Its two
+options (`@shield-left` turns both on): `watch_left`, which also judges the left-lane drivers
+predicted to move right into the ego's gap (an extended observation only), and `cap_in_lane`,
+which caps the ego's command at IDM's behind its leader once it has joined. This script runs a
+policy behind each variant on the same roads as the grid (`marlmerge.evaluation.grid.road_seeds`,
+root seed 2,000,000) and prints one JSON line per variant: episodes, collisions, success,
+truncations and the mean merge time of the successful episodes.
 
-    python benchmarks/shield_in_lane.py --runs "runs/hardened_s?" \
+    python benchmarks/shield_variants.py --policy "quadq:runs/hardened_s?" \\
         --condition "heldout_*" --condition "heldout4_*" [--sees-ramp] [--episodes 400]
+    python benchmarks/shield_variants.py --policy idm --observation extended_accel \\
+        --condition "heldout3_*" --episodes 200
+
+`--sees-ramp` runs the conditions with `driver.lane_change_sees_ramp = true` (drivers who do
+not move right in beside a merging vehicle; the roads stay the same). `--observation` sets the
+ego's layout for a rule (a learned policy keeps its own).
 """
 
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 
 import numpy as np
@@ -24,58 +28,80 @@ import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.grid import expand_conditions, parse_condition, road_seeds
-from marlmerge.evaluation.registry import make_policy, parse_policy, scenario_for
+from marlmerge.evaluation.registry import PolicySpec, make_policy, parse_policy, scenario_for
 from marlmerge.evaluation.rollout import EgoPolicy, rollout_first_egos
-from marlmerge.policies.scripted import IdmEgoPolicy, joined
-from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS
+from marlmerge.policies.gap_acceptance import GapShield
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 
 GRID_SEED = 2_000_000
+VARIANTS = {  # name: (watch_left, cap_in_lane)
+    "shield": (False, False),
+    "shield+cap": (False, True),
+    "shield+left": (True, False),
+    "shield-left": (True, True),
+}
 
 
-def capped(shielded: EgoPolicy, scen: ScenarioConfig) -> EgoPolicy:
-    """`shielded`, its acceleration at most IDM's once the ego is in its lane."""
-    idm = IdmEgoPolicy(scen)
-
-    def policy(obs: torch.Tensor) -> torch.Tensor:
-        a = shielded(obs).numpy().copy()  # [B, A]
-        o = obs.numpy()
-        in_lane = joined(o, scen)  # past the overlap point: the shield forces the join
-        a[..., 0] = np.where(in_lane, np.minimum(a[..., 0], idm(o)[..., 0]), a[..., 0])
-        return torch.as_tensor(a)
-
-    return policy
+def shielded(
+    spec: PolicySpec,
+    run: str | None,
+    scen: ScenarioConfig,
+    watch_left: bool,
+    cap: bool,
+    margin: float,
+) -> EgoPolicy:
+    """The policy behind a `GapShield` with these options."""
+    bare = make_policy(spec, run, scen)
+    shield = GapShield(scen, watch_left=watch_left, cap_in_lane=cap, left_margin_mps2=margin)
+    return lambda obs: torch.as_tensor(shield(obs.numpy(), bare(obs).numpy()))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--runs", required=True, help="glob of learned run folders (policy.pt)")
+    ap.add_argument("--policy", required=True, help="a rule or KIND:RUN_GLOB, without modifier")
     ap.add_argument("--condition", action="append", required=True)
     ap.add_argument("--episodes", type=int, default=400)
     ap.add_argument("--sees-ramp", action="store_true")
+    ap.add_argument("--observation", default=None, help="the ego's layout, for a rule")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated")
+    ap.add_argument("--left-margin", type=float, default=1.0, help="GapShield.left_margin_mps2")
     args = ap.parse_args()
-    runs = sorted(glob.glob(args.runs))
-    if not runs:
-        raise SystemExit(f"--runs {args.runs!r} matches no run folder")
-    spec = parse_policy(f"quadq@shield:{runs[0]}")
-    totals = {v: {"episodes": 0, "collisions": 0, "success": 0} for v in ("shield", "shield+cap")}
+    spec = parse_policy(args.policy)
+    if spec.shield or spec.safety_filter is not None:
+        raise SystemExit(f"--policy {args.policy!r}: give it without a modifier")
+    names = [v for v in args.variants.split(",") if v]
+    unknown = [v for v in names if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"--variants: unknown {unknown[0]!r} (one of {', '.join(VARIANTS)})")
+    keys = ("episodes", "collisions", "success", "truncated", "merge_time_sum_s")
+    totals = {v: dict.fromkeys(keys, 0.0) for v in names}
     for preset in expand_conditions(args.condition):
         base = parse_condition(preset).scenario()
         if args.sees_ramp:
             base = base.replace(**{"driver.lane_change_sees_ramp": True})
-        for run in runs:
+        if args.observation and not spec.runs:
+            base = base.replace(**{"ego.observation": args.observation})
+        for run in spec.runs or (None,):
             scen = scenario_for(spec, run, base)
-            shielded = make_policy(spec, run, scen)
             seeds = road_seeds(GRID_SEED, scen.name, args.episodes)
-            for name, policy in (("shield", shielded), ("shield+cap", capped(shielded, scen))):
+            for name in names:
+                policy = shielded(spec, run, scen, *VARIANTS[name], args.left_margin)
                 rec, _ = rollout_first_egos(
                     policy, scen, args.episodes, 0, args.episodes, road_seeds=seeds
                 )
-                t = totals[name]
+                out, t = rec["outcome"], totals[name]
+                ok = out == OUTCOME_SUCCESS
                 t["episodes"] += args.episodes
-                t["collisions"] += int(np.count_nonzero(rec["outcome"] == OUTCOME_COLLISION))
-                t["success"] += int(np.count_nonzero(rec["outcome"] == OUTCOME_SUCCESS))
+                t["collisions"] += int(np.count_nonzero(out == OUTCOME_COLLISION))
+                t["success"] += int(np.count_nonzero(ok))
+                t["truncated"] += int(np.count_nonzero(out == OUTCOME_TRUNCATED))
+                t["merge_time_sum_s"] += float(rec["time_s"][ok].sum())
     for name, t in totals.items():
-        print(json.dumps({"variant": name, "sees_ramp": args.sees_ramp, "runs": args.runs} | t))
+        row = {"variant": name, "policy": args.policy, "sees_ramp": args.sees_ramp}
+        row["left_margin_mps2"] = args.left_margin
+        row |= {k: int(t[k]) for k in keys[:-1]}
+        row["merge_time_s"] = round(t["merge_time_sum_s"] / max(t["success"], 1), 2)
+        print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

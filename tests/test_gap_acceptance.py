@@ -6,7 +6,7 @@ import pytest
 from marlmerge.config import ScenarioConfig
 from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, GapShield, IdmEgoPolicy
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.sim.observation import EGO_SCALE
+from marlmerge.sim.observation import EGO_SCALE, ego_features
 
 COOPERATIVE_LIGHT = {
     "traffic.flow_vph_per_lane": 600.0,
@@ -175,3 +175,66 @@ def test_a_shielded_policy_never_collides_where_the_bare_one_does(cfg):
     safe = first_ego_outcomes(shielded, dense, batch_size=128, seed=5)
     assert (bare == OUTCOME_COLLISION).sum() >= 20  # 55 of the 128
     assert (safe == OUTCOME_COLLISION).sum() == 0 and (safe == OUTCOME_SUCCESS).mean() >= 0.95
+
+
+def _drive_beside_a_late_mover(watch_left: bool) -> int:
+    """The ego holds 22 m/s on the ramp, 4.5 s before the join point, beside a left-lane driver
+    at its speed whose lane-change cooldown ends 4 s in (it then moves right, beside the ego,
+    with the right lane empty); the ego behind `GapShield(watch_left=...)`. Its outcome."""
+    from scenes import scene
+
+    from marlmerge.policies.scripted import constant_speed_action
+    from marlmerge.sim.layout import VF_SINCE_LC
+
+    over = {
+        "ego.observation": "extended",
+        "driver.lane_change_threshold_mps2": 0.2,
+        "driver.keep_right_bias_mps2": 0.5,
+    }
+    probe = scene((0.0, 22.0), overrides=over)
+    x0 = probe.cfg.x_overlap_m - 22.0 * 4.5
+    core = scene((x0, 22.0), left=[(x0, 22.0)], overrides=over)
+    core.vf[0, VF_SINCE_LC, 1] = probe.cfg.driver.lane_change_cooldown_s - 4.0
+    shield = GapShield(core.cfg, watch_left=watch_left)
+    obs, _ = core.observe()
+    for _ in range(60):
+        out = core.rollout(shield(obs, constant_speed_action(obs))[:, 0].astype(np.float64))
+        obs = out.ego_obs
+        if out.ego_outcome[0] != OUTCOME_NONE:
+            return int(out.ego_outcome[0])
+    return OUTCOME_NONE
+
+
+def test_the_left_watch_foresees_a_driver_moving_in_beside_the_join():
+    # the plain shield sees the mover only once it is beside the ego, too late to drop behind
+    assert _drive_beside_a_late_mover(watch_left=False) == OUTCOME_COLLISION
+    assert _drive_beside_a_late_mover(watch_left=True) == OUTCOME_SUCCESS
+
+
+def test_the_left_watch_takes_only_drivers_that_would_move(cfg):
+    ext = cfg.replace(**{"ego.observation": "extended"})
+    shield = GapShield(ext, watch_left=True)
+    names = [f.name for f in ego_features(ext)]
+    x, rng_m = ext.x_overlap_m - 60.0, ext.ego.sensing_range_m
+
+    def obs(left_dx: float, left_v: float, front=None) -> np.ndarray:
+        raw = np.zeros(len(names))
+        raw[:7] = _obs(ext, 25.0, x, front=front)[0] * EGO_SCALE
+        raw[names.index("left_front_dx")], raw[names.index("left_front_speed")] = left_dx, left_v
+        raw[names.index("left_back_dx")] = -rng_m
+        raw[names.index("left_back_speed")] = ext.road.speed_limit_mps
+        scale = np.array([f.scale for f in ego_features(ext)])
+        return (raw / scale)[None]
+
+    front = names.index("front_position")
+    # the right lane empty ahead: the left driver 10 m ahead would move right, into the gap
+    seen = shield._left_movers(obs(10.0, 25.0))
+    assert seen[0, front] * EGO_SCALE[1] == pytest.approx(x + 10.0)
+    # a slow right-lane vehicle 15 m ahead of it: it stays left, the gap is as the sensors say
+    held = obs(10.0, 25.0, front=(25.0, 10.0))
+    np.testing.assert_array_equal(shield._left_movers(held), held)
+    # no left-lane vehicle within the sensing range: nothing changes
+    none = obs(rng_m, ext.road.speed_limit_mps)
+    np.testing.assert_array_equal(shield._left_movers(none), none)
+    with pytest.raises(ValueError, match="ego.observation = 'paper' has none"):
+        GapShield(cfg, watch_left=True)

@@ -189,11 +189,19 @@ def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(t
         parse_policy("gap@careful")
     shielded = parse_policy(f"quadq@shield:{run}")
     assert shielded.shield and shielded.safety_filter is None and shielded.name == "quadq@shield"
+    assert not shielded.shield_left
+    left = parse_policy(f"quadq@shield-left:{run}")  # the run sees the left lane
+    assert left.shield and left.shield_left and left.name == "quadq@shield-left"
     rows = run_grid(
-        [parse_policy(f"quadq:{run}"), gap, shielded], ["grid_light_mixed"], episodes=2,
+        [parse_policy(f"quadq:{run}"), gap, shielded, left], ["grid_light_mixed"], episodes=2,
         worlds=2, out_dir=tmp_path / "grid", progress=False,
     ).rows  # fmt: skip
-    assert {r["policy"] for r in rows} == {"quadq", "gap@filter", "quadq@shield"}
+    assert {r["policy"] for r in rows} == {
+        "quadq",
+        "gap@filter",
+        "quadq@shield",
+        "quadq@shield-left",
+    }
 
 
 def test_a_sensing_condition_keeps_the_roads_and_changes_the_sensor():

@@ -341,3 +341,11 @@ def test_stress_settings_name_the_key_and_the_value(key, value):
 
     with pytest.raises(ValueError, match=f"^{key} must be .*, got {value}$"):
         StressSettings(**{key: value})
+
+
+def test_the_left_watching_shield_on_a_paper_observation_is_refused_before_any_file(tmp_path):
+    from marlmerge.evaluation.grid import parse_policy, run_grid
+
+    with pytest.raises(ValueError, match="'gap@shield-left' on 'light': @shield-left reads"):
+        run_grid([parse_policy("gap@shield-left")], ["light"], episodes=2, out_dir=tmp_path / "g")
+    assert not (tmp_path / "g").exists()

@@ -48,6 +48,7 @@ from marlmerge.evaluation.registry import (  # noqa: F401 - the grid's policies,
     LEARNED_KINDS,
     RULE_POLICIES,
     PolicySpec,
+    check_shield_left,
     make_policy,
     parse_policy,
     scenario_for,
@@ -319,9 +320,13 @@ def run_grid(
         raise ValueError(
             f"ramp_hours must be > 0 and ramp_worlds >= 1, got {ramp_hours} and {ramp_worlds}"
         )
+    every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
+    for c in every:
+        for p in policies:
+            for run in p.runs or (None,):
+                check_shield_left(p, scenario_for(p, run, c.scenario()))
     out = Path(out_dir)
     (out / "cells").mkdir(parents=True, exist_ok=True)
-    every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
     flowing = [c for c in every if c.scenario().ramp.flowing]
     conds = [c for c in every if c not in flowing]
     flow_cells = [

@@ -10,7 +10,9 @@ Specs:
   `quadq@nofilter:runs/robust_s*`): with or without the core's safety filter
   (`ego.safety_filter`), whatever the policy was trained with; or with `@shield`
   (`quadq@shield:runs/robust_s*`): its commands judged by gap acceptance
-  (`marlmerge.policies.gap_acceptance.GapShield`).
+  (`marlmerge.policies.gap_acceptance.GapShield`); or with `@shield-left`: the shield that also
+  judges the left-lane drivers predicted to move into the ego's gap (an extended observation
+  only) and caps the ego at IDM behind its leader once it has joined.
 
 A learned policy drives with the ego-side settings it was trained with (`EGO_SIDE_KEYS`: its
 observation layout and its safety filter), whatever the traffic condition it meets: the
@@ -34,7 +36,7 @@ from marlmerge.evaluation.rollout import EgoPolicy
 RULE_POLICIES = ("hold", "idm", "gap")
 LEARNED_KINDS = ("quadq", "dqn", "td3")
 FILTER_MODIFIERS = {"filter": True, "nofilter": False}
-SHIELD_MODIFIER = "shield"
+SHIELD_MODIFIERS = ("shield", "shield-left")
 EGO_SIDE_KEYS = (
     "ego.observation",
     "ego.time_to_merge_cap_s",
@@ -58,6 +60,8 @@ class PolicySpec:
     shield: bool = False
     """`@shield`: the policy's commands pass through gap acceptance's judgement
     (`marlmerge.policies.gap_acceptance.GapShield`)."""
+    shield_left: bool = False
+    """`@shield-left`: the shield with `watch_left` and `cap_in_lane` (`shield` is true too)."""
 
 
 def parse_policy(spec: str) -> PolicySpec:
@@ -66,14 +70,15 @@ def parse_policy(spec: str) -> PolicySpec:
     label, _, body = spec.rpartition("=")
     head, _, pattern = body.partition(":")
     kind, _, modifier = head.partition("@")
-    if modifier and modifier not in (*FILTER_MODIFIERS, SHIELD_MODIFIER):
+    if modifier and modifier not in (*FILTER_MODIFIERS, *SHIELD_MODIFIERS):
         raise ValueError(
-            f"policy {spec!r}: unknown modifier @{modifier} (@filter, @nofilter or @shield)"
+            f"policy {spec!r}: unknown modifier @{modifier} "
+            "(@filter, @nofilter, @shield or @shield-left)"
         )
     flt = FILTER_MODIFIERS.get(modifier)
-    shield = modifier == SHIELD_MODIFIER
+    shield, left = modifier in SHIELD_MODIFIERS, modifier == "shield-left"
     if kind in RULE_POLICIES and not pattern:
-        return PolicySpec(label or head, kind, safety_filter=flt, shield=shield)
+        return PolicySpec(label or head, kind, safety_filter=flt, shield=shield, shield_left=left)
     if kind in LEARNED_KINDS and pattern:
         from marlmerge.io.policy_file import read_policy
 
@@ -86,7 +91,7 @@ def parse_policy(spec: str) -> PolicySpec:
             algorithm = read_policy(run, "ego")["algorithm"]
             if algorithm != kind:
                 raise ValueError(f"policy {spec!r}: {run!r} holds a {algorithm} policy")
-        return PolicySpec(label or head, kind, runs, flt, shield)
+        return PolicySpec(label or head, kind, runs, flt, shield, left)
     raise ValueError(
         f"unknown policy {spec!r} (use one of {', '.join(RULE_POLICIES)}, or "
         f"[label=]{'|'.join(LEARNED_KINDS)}:RUN_GLOB)"
@@ -117,7 +122,8 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
         policy = lambda obs: torch.as_tensor(rule(obs.numpy()), dtype=torch.float32)  # noqa: E731
     if not spec.shield:
         return policy
-    shield = GapShield(scenario)
+    check_shield_left(spec, scenario)
+    shield = GapShield(scenario, watch_left=spec.shield_left, cap_in_lane=spec.shield_left)
     return lambda obs: torch.as_tensor(shield(obs.numpy(), policy(obs).numpy()))
 
 
@@ -134,6 +140,20 @@ def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -
     if spec.safety_filter is not None:
         changes["ego.safety_filter"] = spec.safety_filter
     return condition.replace(**changes) if changes else condition
+
+
+def check_shield_left(spec: PolicySpec, scenario: ScenarioConfig) -> None:
+    """`@shield-left` reads the left-lane features: refuse it, naming the policy and the
+    scenario, where the policy's observation has none."""
+    from marlmerge.policies.gap_acceptance import LEFT_FEATURES
+    from marlmerge.sim.observation import ego_features
+
+    if spec.shield_left and LEFT_FEATURES[0] not in {f.name for f in ego_features(scenario)}:
+        raise ValueError(
+            f"policy {spec.name!r} on {scenario.name!r}: @shield-left reads the left lane, which "
+            f"ego.observation = {scenario.ego.observation!r} does not show (a policy trained "
+            "with 'extended' or 'extended_accel' does)"
+        )
 
 
 def policy_for_evaluation(

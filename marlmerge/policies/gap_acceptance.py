@@ -16,7 +16,14 @@ import numpy as np
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.policies.scripted import IdmEgoPolicy, constant_speed_action, joined
-from marlmerge.sim.observation import EGO_FEATURES, EGO_SCALE, feature_index
+from marlmerge.sim.observation import (
+    EGO_FEATURES,
+    EGO_SCALE,
+    POSITION_SCALE_M,
+    SPEED_SCALE_MPS,
+    ego_features,
+    feature_index,
+)
 
 __all__ = [
     "GapAcceptancePolicy",
@@ -27,6 +34,8 @@ __all__ = [
 ]
 
 _E = {f.name: feature_index(EGO_FEATURES, f.name) for f in EGO_FEATURES}
+LEFT_FEATURES = ("left_front_dx", "left_front_speed", "left_back_dx", "left_back_speed")
+"""The extended layouts' nearest left-lane vehicles, which `GapShield(watch_left=True)` reads."""
 
 
 class GapDecision(NamedTuple):
@@ -322,6 +331,21 @@ class GapShield:
     Like gap acceptance, it sees only the observation (its paper's features): it is a policy
     wrapper, not the core's safety filter (`ego.safety_filter`), and it acts on what the
     sensors report.
+
+    Two options (the grid's `@shield-left` turns both on):
+
+    - `watch_left`, with an extended observation (`LEFT_FEATURES`): a left-lane driver who
+      would move right into the ego's gap is judged as if it had, in every test above, in place
+      of the gap-front vehicle (if ahead of the ego) or the gap-back vehicle (if behind).
+      Predicted by MOBIL as a driver of the scenario's mean settings would judge it
+      (`_left_movers`): room to both gap vehicles, the gap-back vehicle braking no harder than
+      `driver.safe_brake_mps2` behind it, and IDM's acceleration behind the gap-front vehicle
+      at least its acceleration in the left lane (behind the other left-lane vehicle, or on a
+      free road) less `left_margin_mps2`. The paper's drivers move right without regard to a
+      vehicle about to join, and a move in the last second before the join cannot be answered
+      once it is seen.
+    - `cap_in_lane`: once the ego is in its lane, its command is capped at IDM's behind its
+      leader (`IdmEgoPolicy`).
     """
 
     def __init__(
@@ -330,6 +354,9 @@ class GapShield:
         commit_brake_mps2: float = 1.5,
         critical_gap_s: float = 0.5,
         forced_gap_s: float | None = None,
+        watch_left: bool = False,
+        cap_in_lane: bool = False,
+        left_margin_mps2: float = 1.0,
     ):
         if cfg is not None and cfg.ego.chooses_join:
             raise ValueError(
@@ -346,10 +373,22 @@ class GapShield:
         )
         self.cfg = self.gap.cfg
         self.commit_brake_mps2 = commit_brake_mps2
+        names = [f.name for f in ego_features(self.cfg)]
+        if watch_left and LEFT_FEATURES[0] not in names:
+            raise ValueError(
+                f"GapShield(watch_left=True) reads the left-lane features; ego.observation = "
+                f"{self.cfg.ego.observation!r} has none (use 'extended' or 'extended_accel')"
+            )
+        self._left = tuple(names.index(n) for n in LEFT_FEATURES) if watch_left else None
+        self.left_margin_mps2 = left_margin_mps2
+        self._cap = IdmEgoPolicy(self.cfg) if cap_in_lane else None
 
     def __call__(self, obs: np.ndarray, cmd: np.ndarray) -> np.ndarray:
         """obs [B, F] scaled ego observation, cmd [B, 1] (m/s^2) -> [B, 1] the command or the
         override (float32)."""
+        seen = np.asarray(obs)
+        if self._left is not None:
+            obs = self._left_movers(seen)
         raw = np.nan_to_num(np.asarray(obs, dtype=np.float64)[..., : len(EGO_FEATURES)]) * EGO_SCALE
         col = {k: raw[..., i][..., None] for k, i in _E.items()}  # each [B, 1]
         a = np.asarray(cmd, dtype=np.float64).reshape(col["ego_speed"].shape)
@@ -361,7 +400,58 @@ class GapShield:
         can_wait = x1 + stop_m <= x_ov - self.gap.wait_before_m
         gap = self.gap.decide(obs)
         keep = self._joins(col, a) | still_joins | (can_wait & ~gap.accepts[..., None])
-        return np.where(keep | (x >= x_ov), a, self._override(a, gap)).astype(np.float32)
+        out = np.where(keep | (x >= x_ov), a, self._override(a, gap))
+        if self._cap is not None:
+            in_lane = joined(seen, self.cfg)[..., None]
+            out = np.where(in_lane, np.minimum(out, self._cap(seen)), out)
+        return out.astype(np.float32)
+
+    def _left_movers(self, obs: np.ndarray) -> np.ndarray:
+        """obs [B, F] with the gap vehicles replaced by the left-lane drivers predicted to move
+        right into the ego's gap (`watch_left`, see the class docstring)."""
+        cfg, d = self.cfg, self.cfg.driver
+        out = np.array(obs, dtype=np.float64)
+        raw = np.nan_to_num(out[..., : len(EGO_FEATURES)]) * EGO_SCALE
+        x, v_lim = raw[..., _E["ego_position"]], raw[..., _E["speed_limit"]]
+        x_f, v_f = raw[..., _E["front_position"]], raw[..., _E["front_speed"]]
+        x_b, v_b = raw[..., _E["back_position"]], raw[..., _E["back_speed"]]
+        length, s0 = cfg.vehicle.length_m, d.min_gap_m
+        v0 = float(np.mean(d.desired_speed_factor)) * v_lim  # the mean driver's settings
+        t_hw = float(np.mean(d.time_headway_s))
+
+        def idm(v: np.ndarray, gap: np.ndarray, v_lead: np.ndarray) -> np.ndarray:
+            s_star = s0 + np.maximum(
+                v * t_hw + v * (v - v_lead) / (2.0 * np.sqrt(d.accel_mps2 * d.comfort_brake_mps2)),
+                0.0,
+            )
+            free = 1.0 - (v / np.maximum(v0, 1.0)) ** d.delta
+            return d.accel_mps2 * (free - (s_star / np.maximum(gap, 1e-3)) ** 2)
+
+        i_fdx, i_fv, i_bdx, i_bv = self._left
+        rng = cfg.ego.sensing_range_m - 1e-3  # a missing vehicle sits at +-range
+        lf_dx = np.nan_to_num(out[..., i_fdx]) * POSITION_SCALE_M
+        lb_dx = np.nan_to_num(out[..., i_bdx]) * POSITION_SCALE_M
+        lf_v = np.nan_to_num(out[..., i_fv]) * SPEED_SCALE_MPS
+        lb_v = np.nan_to_num(out[..., i_bv]) * SPEED_SCALE_MPS
+        # left-lane leaders: the front left vehicle's is unseen (a free road), the back one's is
+        # the front left vehicle (or none)
+        free = np.full_like(x, np.inf)
+        lb_gap = np.where(np.abs(lf_dx) < rng, lf_dx - lb_dx - length, free)
+        for dx, v_l, gap_l, v_lead_l, side in (
+            (lf_dx, lf_v, free, lf_v, "front"),
+            (lb_dx, lb_v, lb_gap, lf_v, "back"),
+        ):
+            x_l = x + dx
+            fits = (np.abs(dx) < rng) & (x_l - x_b - length > s0) & (x_f - x_l - length > s0)
+            safe = idm(v_b, x_l - x_b - length, v_l) >= -d.safe_brake_mps2
+            wants = idm(v_l, x_f - x_l - length, v_f) >= idm(v_l, gap_l, v_lead_l) - (
+                self.left_margin_mps2
+            )
+            moves = fits & safe & wants
+            i_x, i_s = _E[f"{side}_position"], _E[f"{side}_speed"]
+            out[..., i_x] = np.where(moves, x_l / EGO_SCALE[i_x], out[..., i_x])
+            out[..., i_s] = np.where(moves, v_l / EGO_SCALE[i_s], out[..., i_s])
+        return out
 
     def _one_step(self, col: dict, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The ego's speed and position [B, 1] after one control step at a."""
