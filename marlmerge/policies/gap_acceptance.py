@@ -328,9 +328,9 @@ class GapShield:
     smoother, but the floored-throttle merger gets through: 6 collisions on the 128 roads with
     0.35 s, 24 with 0 s.
 
-    Like gap acceptance, it sees only the observation (its paper's features): it is a policy
-    wrapper, not the core's safety filter (`ego.safety_filter`), and it acts on what the
-    sensors report.
+    Like gap acceptance, it sees only the observation (its paper's features, and with
+    `watch_left` the left-lane ones): it is a policy wrapper, not the core's safety filter
+    (`ego.safety_filter`), and it acts on what the sensors report.
 
     Two options (the grid's `@shield-left` turns both on):
 
@@ -341,7 +341,8 @@ class GapShield:
       (`_left_movers`): room to both gap vehicles, the gap-back vehicle braking no harder than
       `driver.safe_brake_mps2` behind it, and IDM's acceleration behind the gap-front vehicle
       at least its acceleration in the left lane (behind the other left-lane vehicle, or on a
-      free road) less `left_margin_mps2`. The paper's drivers move right without regard to a
+      free road) less `left_margin_mps2` (1 m/s^2, chosen on the grid's conditions:
+      `docs/stress.md`). The paper's drivers move right without regard to a
       vehicle about to join, and a move in the last second before the join cannot be answered
       once it is seen.
     - `cap_in_lane`: once the ego is in its lane, its command is capped at IDM's behind its
