@@ -21,7 +21,7 @@ import json
 import torch
 
 from marlmerge.config.presets import resolve_config
-from marlmerge.evaluation.registry import policy_from_spec
+from marlmerge.evaluation.registry import policy_for_evaluation
 from marlmerge.evaluation.rollout import evaluate_policy
 from marlmerge.learners.highway import DesiredSpeedHighwayPolicy
 
@@ -50,7 +50,7 @@ def main() -> None:
                 scen = base.replace(**{"sim.n_highway_agents": k})
                 cases.append((f"roster_{k}", scen, constant_speed(factor, scen)))
             for case, scen, highway in cases:
-                ego = policy_from_spec(spec, scen)
+                ego, scen = policy_for_evaluation(spec, scen)  # a run keeps its observation
                 r = evaluate_policy(ego, scen, args.episodes, SEED, 100, highway)
                 row = {"ego": spec, "factor": factor, "case": case}
                 rows.append(row | {k: round(float(r[k]), 4) for k in KEYS})

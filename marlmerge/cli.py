@@ -751,7 +751,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.set_defaults(func=sweep_cmd)
 
     r = sub.add_parser("render", help="record greedy episodes as a video (.mp4 or .gif)")
-    r.add_argument("policy", help="hold, idm, gap, or a run folder / policy.pt")
+    r.add_argument("policy", help="as evaluate takes it: hold, idm, gap, a run, gap@shield, ...")
     r.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
     r.add_argument("--episodes", type=_at_least(1), default=1)
     r.add_argument(

@@ -202,6 +202,15 @@ def test_a_policy_keeps_its_ego_side_settings_and_the_filter_its_spec_asks_for(t
         "quadq@shield",
         "quadq@shield-left",
     }
+    # evaluate and render take the run folder itself in another scenario: its observation kept
+    from marlmerge.cli import main
+
+    assert main(["evaluate", str(run), "--scenario", "light", "--episodes", "2"]) == 0
+    gif = tmp_path / "run.gif"
+    assert (
+        main(["render", f"quadq@shield-left:{run}", "--scenario", "light", "--out", str(gif)]) == 0
+    )
+    assert gif.stat().st_size > 0
 
 
 def test_a_sensing_condition_keeps_the_roads_and_changes_the_sensor():

@@ -168,8 +168,11 @@ def policy_for_evaluation(
     def own(run: str | None) -> ScenarioConfig:
         return resolve_config("default") if run is None else load_scenario_of(run)
 
-    if spec in RULE_POLICIES or Path(spec).exists():
-        scenario = scenario or own(None if spec in RULE_POLICIES else spec)
+    if spec in RULE_POLICIES:
+        scenario = scenario or own(None)
+        return policy_from_spec(spec, scenario), scenario
+    if Path(spec).exists():  # a run folder or policy.pt: its ego-side settings in any scenario
+        scenario = scenario_for(PolicySpec(spec, "run"), spec, scenario or own(spec))
         return policy_from_spec(spec, scenario), scenario
     parsed = parse_policy(spec)
     if len(parsed.runs) > 1:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.registry import policy_from_spec
+from marlmerge.evaluation.registry import policy_for_evaluation
 from marlmerge.sim import OUTCOME_NAMES, OUTCOME_NONE, TrafficCore
 from marlmerge.views.render import render_scene, write_video
 
@@ -85,8 +85,10 @@ def render_episodes(
     view: str = "merge",
     highway: str | None = None,
 ) -> tuple[Path, int, list[str]]:
-    """Record and write a video; returns (path, frames, outcomes)."""
-    policy = policy_from_spec(policy_spec, cfg)
+    """Record and write a video; returns (path, frames, outcomes). `policy_spec` as
+    `evaluate` takes it (a rule, a run, or one policy in the grid's notation); a learned policy
+    drives with its own ego-side settings in `cfg`'s traffic."""
+    policy, cfg = policy_for_evaluation(policy_spec, cfg)
     highway_policy = None
     if highway is not None:
         from marlmerge.learners.highway import load_highway_policy
