@@ -34,6 +34,16 @@ def _csv(path):
 
 
 @pytest.mark.slow
+def test_a_learned_policy_without_the_left_lane_is_refused_the_left_watch(tmp_path, trained):
+    with pytest.raises(ValueError, match="@shield-left reads the left lane, which ego.observat"):
+        run_grid(
+            [parse_policy(f"paper@shield-left=quadq@shield-left:{trained}")], ["light"],
+            episodes=2, out_dir=tmp_path / "g", progress=False,
+        )  # fmt: skip
+    assert not (tmp_path / "g").exists()  # refused before any file
+
+
+@pytest.mark.slow
 def test_grid_writes_csv_summary_and_heatmaps_reproducibly(tmp_path, trained):
     policies = [parse_policy(p) for p in ("hold", "idm", "gap", f"paper=quadq:{trained}")]
     a = run_grid(policies, CONDITIONS, episodes=4, worlds=4, out_dir=tmp_path / "a", progress=False)

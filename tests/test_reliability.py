@@ -343,9 +343,11 @@ def test_stress_settings_name_the_key_and_the_value(key, value):
         StressSettings(**{key: value})
 
 
-def test_the_left_watching_shield_on_a_paper_observation_is_refused_before_any_file(tmp_path):
-    from marlmerge.evaluation.grid import parse_policy, run_grid
+def test_a_rule_behind_the_left_watching_shield_sees_the_left_lane(capsys):
+    from marlmerge.evaluation.registry import parse_policy, scenario_for
 
-    with pytest.raises(ValueError, match="'gap@shield-left' on 'light': @shield-left reads"):
-        run_grid([parse_policy("gap@shield-left")], ["light"], episodes=2, out_dir=tmp_path / "g")
-    assert not (tmp_path / "g").exists()
+    light = ScenarioConfig().replace(name="light")
+    assert scenario_for(parse_policy("gap@shield-left"), None, light).ego.observation == "extended"
+    assert scenario_for(parse_policy("gap@shield"), None, light) == light
+    assert main(["evaluate", "gap@shield-left", "--episodes", "3", "--worlds", "3"]) == 0
+    assert "greedy evaluation on 3 held-out episodes" in capsys.readouterr().out

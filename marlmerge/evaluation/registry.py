@@ -129,7 +129,9 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
 
 def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -> ScenarioConfig:
     """The scenario a policy meets in a traffic condition: the condition, with the ego-side
-    settings the (learned) policy was trained with and the filter its spec asks for."""
+    settings the (learned) policy was trained with and the filter its spec asks for. A rule
+    behind `@shield-left` sees the extended observation where the condition's shows no left
+    lane (the rules read the paper's seven features of any layout; the shield reads the rest)."""
     changes = {}
     if run is not None:
         from marlmerge.config import get_dotted
@@ -137,6 +139,8 @@ def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -
 
         trained = load_scenario_of(run)
         changes = {key: get_dotted(trained, key) for key in EGO_SIDE_KEYS}
+    elif spec.shield_left and condition.ego.observation == "paper":
+        changes["ego.observation"] = "extended"
     if spec.safety_filter is not None:
         changes["ego.safety_filter"] = spec.safety_filter
     return condition.replace(**changes) if changes else condition
