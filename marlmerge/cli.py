@@ -621,7 +621,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="hold, idm, gap, or [label=]quadq|dqn|td3:RUN_GLOB; @filter / @nofilter after the "
         "kind turns the safety filter on / off (gap@filter), @shield puts the policy behind gap "
         "acceptance's judgement (quadq@shield:runs/x_s*), @shield-left behind the shield that "
-        "also watches the left lane (an extended observation) (repeatable; default: the rules)",
+        "also watches the left lane (gap@shield-left) (repeatable; default: the three rules)",
     )
     g.add_argument(
         "--condition",

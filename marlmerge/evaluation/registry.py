@@ -11,8 +11,9 @@ Specs:
   (`ego.safety_filter`), whatever the policy was trained with; or with `@shield`
   (`quadq@shield:runs/robust_s*`): its commands judged by gap acceptance
   (`marlmerge.policies.gap_acceptance.GapShield`); or with `@shield-left`: the shield that also
-  judges the left-lane drivers predicted to move into the ego's gap (an extended observation
-  only) and caps the ego at IDM behind its leader once it has joined.
+  judges the left-lane drivers predicted to move into the ego's gap (a learned policy trained
+  with an extended observation; a rule is given one) and caps the ego at IDM behind its leader
+  once it has joined.
 
 A learned policy drives with the ego-side settings it was trained with (`EGO_SIDE_KEYS`: its
 observation layout and its safety filter), whatever the traffic condition it meets: the
