@@ -1,9 +1,10 @@
 """The gap-acceptance shield's options side by side, on the grid's roads.
 
-`GapShield` (the grid's `@shield`) judges the ramp vehicle's join from its observation. Its two
-options (`@shield-left` turns both on): `watch_left`, which also judges the left-lane drivers
-predicted to move right into the ego's gap (an extended observation only), and `cap_in_lane`,
-which caps the ego's command at IDM's behind its leader once it has joined. This script runs a
+`GapShield` (the grid's `@shield`) judges the ramp vehicle's join from its observation. Its three
+options (`@shield-left` turns them all on): `watch_left`, which also judges the left-lane drivers
+predicted to move right into the ego's gap (an extended observation only), `cap_in_lane`, which
+caps the ego's command at IDM's behind its leader once it has joined, and `keep_rolling`, which
+keeps a nearly stopped ego rolling towards gap acceptance's wait point. This script runs a
 policy behind each variant on the same roads as the grid (`marlmerge.evaluation.grid.road_seeds`,
 root seed 2,000,000) and prints one JSON line per variant: episodes, collisions, success,
 truncations and the mean merge time of the successful episodes.
@@ -34,11 +35,12 @@ from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 
 GRID_SEED = 2_000_000
-VARIANTS = {  # name: (watch_left, cap_in_lane)
-    "shield": (False, False),
-    "shield+cap": (False, True),
-    "shield+left": (True, False),
-    "shield-left": (True, True),
+VARIANTS = {  # name: (watch_left, cap_in_lane, keep_rolling)
+    "shield": (False, False, False),
+    "shield+cap": (False, True, False),
+    "shield+left": (True, False, False),
+    "shield+roll": (False, False, True),
+    "shield-left": (True, True, True),
 }
 
 
@@ -48,11 +50,14 @@ def shielded(
     scen: ScenarioConfig,
     watch_left: bool,
     cap: bool,
+    roll: bool,
     margin: float,
 ) -> EgoPolicy:
     """The policy behind a `GapShield` with these options."""
     bare = make_policy(spec, run, scen)
-    shield = GapShield(scen, watch_left=watch_left, cap_in_lane=cap, left_margin_mps2=margin)
+    shield = GapShield(
+        scen, watch_left=watch_left, cap_in_lane=cap, keep_rolling=roll, left_margin_mps2=margin
+    )
     return lambda obs: torch.as_tensor(shield(obs.numpy(), bare(obs).numpy()))
 
 

@@ -238,3 +238,17 @@ def test_the_left_watch_takes_only_drivers_that_would_move(cfg):
     np.testing.assert_array_equal(shield._left_movers(none), none)
     with pytest.raises(ValueError, match="ego.observation = 'paper' has none"):
         GapShield(cfg, watch_left=True)
+
+
+def test_keep_rolling_lifts_an_early_stop_and_leaves_the_wait_point_alone(cfg):
+    shield = GapShield(cfg, keep_rolling=True)
+    brake = np.array([[-2.0]], dtype=np.float32)
+    early = _obs(cfg, 1.0, cfg.x_overlap_m - 150.0)  # 150 m before the join, nearly stopped
+    assert GapShield(cfg)(early, brake)[0, 0] == -2.0  # the plain shield lets it stop there
+    lifted = shield(early, brake)[0, 0]
+    assert lifted > 0.0 and lifted == GapAcceptancePolicy(cfg)(early)[0, 0]
+    # at gap acceptance's wait point, or still fast, the command stands
+    at_wait = _obs(cfg, 1.0, cfg.x_overlap_m - 2.0, back=(-8.0, 25.0))
+    assert shield(at_wait, brake)[0, 0] == GapShield(cfg)(at_wait, brake)[0, 0]
+    fast = _obs(cfg, 20.0, cfg.x_overlap_m - 150.0)
+    assert shield(fast, brake)[0, 0] == -2.0

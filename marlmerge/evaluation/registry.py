@@ -12,8 +12,8 @@ Specs:
   (`quadq@shield:runs/robust_s*`): its commands judged by gap acceptance
   (`marlmerge.policies.gap_acceptance.GapShield`); or with `@shield-left`: the shield that also
   judges the left-lane drivers predicted to move into the ego's gap (a learned policy trained
-  with an extended observation; a rule is given one) and caps the ego at IDM behind its leader
-  once it has joined.
+  with an extended observation; a rule is given one), caps the ego at IDM behind its leader
+  once it has joined, and keeps it rolling where it would stop early on the ramp.
 
 A learned policy drives with the ego-side settings it was trained with (`EGO_SIDE_KEYS`: its
 observation layout and its safety filter), whatever the traffic condition it meets: the
@@ -62,7 +62,8 @@ class PolicySpec:
     """`@shield`: the policy's commands pass through gap acceptance's judgement
     (`marlmerge.policies.gap_acceptance.GapShield`)."""
     shield_left: bool = False
-    """`@shield-left`: the shield with `watch_left` and `cap_in_lane` (`shield` is true too)."""
+    """`@shield-left`: the shield with `watch_left`, `cap_in_lane` and `keep_rolling` (`shield` is
+    true too)."""
 
 
 def parse_policy(spec: str) -> PolicySpec:
@@ -124,7 +125,8 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
     if not spec.shield:
         return policy
     check_shield_left(spec, scenario)
-    shield = GapShield(scenario, watch_left=spec.shield_left, cap_in_lane=spec.shield_left)
+    left = spec.shield_left
+    shield = GapShield(scenario, watch_left=left, cap_in_lane=left, keep_rolling=left)
     return lambda obs: torch.as_tensor(shield(obs.numpy(), policy(obs).numpy()))
 
 

@@ -34,6 +34,10 @@ __all__ = [
 ]
 
 _E = {f.name: feature_index(EGO_FEATURES, f.name) for f in EGO_FEATURES}
+KEEP_ROLLING_MPS = 2.0
+"""`GapShield(keep_rolling=True)`: a command that leaves the ego slower than this (m/s) more
+than `ROLL_ROOM_M` before gap acceptance's wait point is raised to gap acceptance's action."""
+ROLL_ROOM_M = 5.0
 LEFT_FEATURES = ("left_front_dx", "left_front_speed", "left_back_dx", "left_back_speed")
 """The extended layouts' nearest left-lane vehicles, which `GapShield(watch_left=True)` reads."""
 
@@ -332,7 +336,7 @@ class GapShield:
     `watch_left` the left-lane ones): it is a policy wrapper, not the core's safety filter
     (`ego.safety_filter`), and it acts on what the sensors report.
 
-    Two options (the grid's `@shield-left` turns both on):
+    Three options (the grid's `@shield-left` turns them all on):
 
     - `watch_left`, with an extended observation (`LEFT_FEATURES`): a left-lane driver who
       would move right into the ego's gap is judged as if it had, in every test above, in place
@@ -347,6 +351,10 @@ class GapShield:
       once it is seen.
     - `cap_in_lane`: once the ego is in its lane, its command is capped at IDM's behind its
       leader (`IdmEgoPolicy`).
+    - `keep_rolling`: a command that would leave the ego nearly stopped (`KEEP_ROLLING_MPS`)
+      well before gap acceptance's wait point is raised to gap acceptance's action, which rolls
+      on to that point. A learned ego that stops early on a long ramp in slow traffic otherwise
+      stalls there until its episode is truncated, and the shield, which judges joins, let it.
     """
 
     def __init__(
@@ -358,6 +366,7 @@ class GapShield:
         watch_left: bool = False,
         cap_in_lane: bool = False,
         left_margin_mps2: float = 1.0,
+        keep_rolling: bool = False,
     ):
         if cfg is not None and cfg.ego.chooses_join:
             raise ValueError(
@@ -383,6 +392,7 @@ class GapShield:
         self._left = tuple(names.index(n) for n in LEFT_FEATURES) if watch_left else None
         self.left_margin_mps2 = left_margin_mps2
         self._cap = IdmEgoPolicy(self.cfg) if cap_in_lane else None
+        self.keep_rolling = keep_rolling
 
     def __call__(self, obs: np.ndarray, cmd: np.ndarray) -> np.ndarray:
         """obs [B, F] scaled ego observation, cmd [B, 1] (m/s^2) -> [B, 1] the command or the
@@ -402,6 +412,9 @@ class GapShield:
         gap = self.gap.decide(obs)
         keep = self._joins(col, a) | still_joins | (can_wait & ~gap.accepts[..., None])
         out = np.where(keep | (x >= x_ov), a, self._override(a, gap))
+        if self.keep_rolling:  # a stop short of the wait point: gap acceptance's way on
+            stops = (v1 < KEEP_ROLLING_MPS) & (x1 < x_ov - self.gap.wait_before_m - ROLL_ROOM_M)
+            out = np.where(stops & (x < x_ov), np.maximum(out, gap.accel), out)
         if self._cap is not None:
             in_lane = joined(seen, self.cfg)[..., None]
             out = np.where(in_lane, np.minimum(out, self._cap(seen)), out)
