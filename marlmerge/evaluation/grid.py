@@ -321,8 +321,8 @@ def run_grid(
             f"ramp_hours must be > 0 and ramp_worlds >= 1, got {ramp_hours} and {ramp_worlds}"
         )
     every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
-    for c in every:
-        for p in policies:
+    for p in (p for p in policies if p.shield_left):  # refused before any file is written
+        for c in every:
             for run in p.runs or (None,):
                 check_shield_left(p, scenario_for(p, run, c.scenario()))
     out = Path(out_dir)

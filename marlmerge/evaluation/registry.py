@@ -33,6 +33,7 @@ import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.rollout import EgoPolicy
+from marlmerge.sim.observation import shows_left_lane
 
 RULE_POLICIES = ("hold", "idm", "gap")
 LEARNED_KINDS = ("quadq", "dqn", "td3")
@@ -142,7 +143,7 @@ def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -
 
         trained = load_scenario_of(run)
         changes = {key: get_dotted(trained, key) for key in EGO_SIDE_KEYS}
-    elif spec.shield_left and condition.ego.observation == "paper":
+    elif spec.shield_left and not shows_left_lane(condition):
         changes["ego.observation"] = "extended"
     if spec.safety_filter is not None:
         changes["ego.safety_filter"] = spec.safety_filter
@@ -152,10 +153,7 @@ def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -
 def check_shield_left(spec: PolicySpec, scenario: ScenarioConfig) -> None:
     """`@shield-left` reads the left-lane features: refuse it, naming the policy and the
     scenario, where the policy's observation has none."""
-    from marlmerge.policies.gap_acceptance import LEFT_FEATURES
-    from marlmerge.sim.observation import ego_features
-
-    if spec.shield_left and LEFT_FEATURES[0] not in {f.name for f in ego_features(scenario)}:
+    if spec.shield_left and not shows_left_lane(scenario):
         raise ValueError(
             f"policy {spec.name!r} on {scenario.name!r}: @shield-left reads the left lane, which "
             f"ego.observation = {scenario.ego.observation!r} does not show (a policy trained "

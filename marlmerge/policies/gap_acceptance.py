@@ -16,13 +16,16 @@ import numpy as np
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.policies.scripted import IdmEgoPolicy, constant_speed_action, joined
+from marlmerge.sim.drivers import idm_accel
 from marlmerge.sim.observation import (
     EGO_FEATURES,
     EGO_SCALE,
+    LEFT_LANE_FEATURES,
     POSITION_SCALE_M,
     SPEED_SCALE_MPS,
     ego_features,
     feature_index,
+    shows_left_lane,
 )
 
 __all__ = [
@@ -38,8 +41,6 @@ KEEP_ROLLING_MPS = 2.0
 """`GapShield(keep_rolling=True)`: a command that leaves the ego slower than this (m/s) more
 than `ROLL_ROOM_M` before gap acceptance's wait point is raised to gap acceptance's action."""
 ROLL_ROOM_M = 5.0
-LEFT_FEATURES = ("left_front_dx", "left_front_speed", "left_back_dx", "left_back_speed")
-"""The extended layouts' nearest left-lane vehicles, which `GapShield(watch_left=True)` reads."""
 
 
 class GapDecision(NamedTuple):
@@ -338,7 +339,7 @@ class GapShield:
 
     Three options (the grid's `@shield-left` turns them all on):
 
-    - `watch_left`, with an extended observation (`LEFT_FEATURES`): a left-lane driver who
+    - `watch_left`, with an extended observation (`LEFT_LANE_FEATURES`): a left-lane driver who
       would move right into the ego's gap is judged as if it had, in every test above, in place
       of the gap-front vehicle (if ahead of the ego) or the gap-back vehicle (if behind).
       Predicted by MOBIL as a driver of the scenario's mean settings would judge it
@@ -383,13 +384,13 @@ class GapShield:
         )
         self.cfg = self.gap.cfg
         self.commit_brake_mps2 = commit_brake_mps2
-        names = [f.name for f in ego_features(self.cfg)]
-        if watch_left and LEFT_FEATURES[0] not in names:
+        if watch_left and not shows_left_lane(self.cfg):
             raise ValueError(
                 f"GapShield(watch_left=True) reads the left-lane features; ego.observation = "
                 f"{self.cfg.ego.observation!r} has none (use 'extended' or 'extended_accel')"
             )
-        self._left = tuple(names.index(n) for n in LEFT_FEATURES) if watch_left else None
+        names = [f.name for f in ego_features(self.cfg)]
+        self._left = tuple(names.index(n) for n in LEFT_LANE_FEATURES) if watch_left else None
         self.left_margin_mps2 = left_margin_mps2
         self._cap = IdmEgoPolicy(self.cfg) if cap_in_lane else None
         self.keep_rolling = keep_rolling
@@ -434,12 +435,8 @@ class GapShield:
         t_hw = float(np.mean(d.time_headway_s))
 
         def idm(v: np.ndarray, gap: np.ndarray, v_lead: np.ndarray) -> np.ndarray:
-            s_star = s0 + np.maximum(
-                v * t_hw + v * (v - v_lead) / (2.0 * np.sqrt(d.accel_mps2 * d.comfort_brake_mps2)),
-                0.0,
-            )
-            free = 1.0 - (v / np.maximum(v0, 1.0)) ** d.delta
-            return d.accel_mps2 * (free - (s_star / np.maximum(gap, 1e-3)) ** 2)
+            a, b = d.accel_mps2, d.comfort_brake_mps2
+            return idm_accel(v, gap, v_lead, v0, t_hw, a, b, s0, d.delta)
 
         i_fdx, i_fv, i_bdx, i_bv = self._left
         rng = cfg.ego.sensing_range_m - 1e-3  # a missing vehicle sits at +-range

@@ -213,3 +213,12 @@ def ego_obs_size(cfg: ScenarioConfig) -> int:
 
 def feature_index(features: tuple[Feature, ...], name: str) -> int:
     return [f.name for f in features].index(name)
+
+
+LEFT_LANE_FEATURES = ("left_front_dx", "left_front_speed", "left_back_dx", "left_back_speed")
+"""The nearest left-lane vehicles ahead and behind, in the extended layouts."""
+
+
+def shows_left_lane(cfg: ScenarioConfig) -> bool:
+    """Whether the ego's observation in a scenario has `LEFT_LANE_FEATURES` (not the paper's)."""
+    return LEFT_LANE_FEATURES[0] in {f.name for f in ego_features(cfg)}
