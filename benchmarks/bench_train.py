@@ -22,9 +22,9 @@ With `--seeds S`, the same run measures, one after the other (`--modes`, default
     python benchmarks/bench_train.py --preset paper --seeds 8 --workers 2 --modes one,vec,workers
     python benchmarks/bench_train.py --preset paper --seeds 5 --workers 2 --modes workers,sweep
 
-With `--devices cpu,cuda` the run (one seed, or `--seeds S` in one process) is measured on each
-device in turn (`device` of the recipe), with `speedup` against the first device's training
-loop:
+With `--devices cpu,cuda` the run is measured on each device in turn (`device` of the recipe),
+with `speedup` against the first device's training loop; with `--seeds S`, one seed and S seeds
+in one process on each device, with each device's `seeds_wall_ratio`:
 
     python benchmarks/bench_train.py --preset paper --devices cpu,cuda [--seeds 8]
 """
@@ -105,8 +105,9 @@ def timed_sweep(preset: str, sets: dict, seeds: list[int], workers: int, vectori
 
 
 def on_devices(cfg: TrainConfig, devices: list[str], n_seeds: int | None) -> dict:
-    """The run (one seed, or `n_seeds` in one process) on each device, one after the other;
-    every device is checked before the first run starts."""
+    """The run on each device, one after the other; every device is checked before the first
+    run starts. With `n_seeds`, each device runs one seed and then `n_seeds` in one process,
+    with `seeds_wall_ratio` (S seeds' training loop over one seed's) per device."""
     from marlmerge.learners.common import resolve_device
 
     cfgs = [dataclasses.replace(cfg, device=d) for d in devices]  # checks the values
@@ -118,8 +119,19 @@ def on_devices(cfg: TrainConfig, devices: list[str], n_seeds: int | None) -> dic
     out: dict = {"machine": machine(), "preset": cfg.name, "update_path": cfg.update_path}
     seeds = list(range(cfg.seed, cfg.seed + (n_seeds or 1)))
     for c in cfgs:
-        out[c.device] = single_run(c) if n_seeds is None else seeds_run(c, seeds)
-        out[c.device]["speedup"] = out[cfgs[0].device]["wall_s"] / out[c.device]["wall_s"]
+        if n_seeds is None:
+            out[c.device] = single_run(c)
+            out[c.device]["speedup"] = out[devices[0]]["wall_s"] / out[c.device]["wall_s"]
+            continue
+        one, vec = seeds_run(c, seeds[:1]), seeds_run(c, seeds)
+        first = out.get(devices[0], {"one_seed": one, "vectorized": vec})
+        out[c.device] = {
+            "one_seed": one,
+            "vectorized": vec,
+            "seeds_wall_ratio": vec["wall_s"] / one["wall_s"],
+            "speedup_one_seed": first["one_seed"]["wall_s"] / one["wall_s"],
+            "speedup_vectorized": first["vectorized"]["wall_s"] / vec["wall_s"],
+        }
     return out
 
 

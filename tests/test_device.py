@@ -96,3 +96,19 @@ def test_whole_run_on_cuda(tmp_path, algorithm, path):
     policy = load_policy(tmp_path / "policy.pt")  # written on the CPU: loads anywhere
     assert policy(torch.zeros(3, 7)).device.type == "cpu"
     assert json.loads((tmp_path / "evaluation.json").read_text())["episodes"] == 8
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_vectorised_seeds_run_on_cuda(tmp_path):
+    """`train --seeds` on the device: every seed's folder written as a single run writes it,
+    policies on the CPU, the seeds different. (Bit-for-bit equality with the single runs is
+    the CPU's promise: on CUDA the batched products may round differently, docs/training.md.)"""
+    from test_vectorized_seeds import SMALL, _read
+
+    cfg = TrainConfig(**SMALL, device="cuda")
+    results = train_seeds(cfg, [0, 3], tmp_path, progress=False)
+    assert [r.sim_steps >= cfg.total_sim_steps for r in results] == [True, True]
+    for seed in (0, 3):
+        policy = load_policy(tmp_path / f"seed_{seed}" / "policy.pt")
+        assert policy(torch.zeros(3, 7)).device.type == "cpu"
+    assert _read(tmp_path / "seed_0" / "egos.csv") != _read(tmp_path / "seed_3" / "egos.csv")
