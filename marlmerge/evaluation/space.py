@@ -63,7 +63,15 @@ round that added checkpoint selection to the hardened recipe."""
 HELDOUT5_SEED = 20261204
 """The seed the fifth held-out set (`envs/heldout5_*`) was drawn with: committed before the
 round that added the left-lane watch to the shield (`@shield-left`)."""
-HELDOUT_SETS = {"heldout3": HELDOUT3_SEED, "heldout4": HELDOUT4_SEED, "heldout5": HELDOUT5_SEED}
+HELDOUT6_SEED = 20261205
+"""The seed the sixth held-out set (`envs/heldout6_*`) was drawn with: committed before the
+round that looked at the collisions behind `@shield-left`."""
+HELDOUT_SETS = {
+    "heldout3": HELDOUT3_SEED,
+    "heldout4": HELDOUT4_SEED,
+    "heldout5": HELDOUT5_SEED,
+    "heldout6": HELDOUT6_SEED,
+}
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
 
@@ -113,7 +121,8 @@ def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None =
     """Write a held-out set drawn from `SPACE` (`HELDOUT_SETS`), `PREFIX_01.toml` ... into
     `folder`; `seed` defaults to the set's own."""
     seed = HELDOUT_SETS[prefix] if seed is None else seed
-    ordinal = {"heldout3": "third", "heldout4": "fourth", "heldout5": "fifth"}.get(prefix, prefix)
+    ordinals = {"heldout3": "third", "heldout4": "fourth", "heldout5": "fifth", "heldout6": "sixth"}
+    ordinal = ordinals.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
     for i, point in enumerate(heldout_points(n, seed), start=1):
         name = f"{prefix}_{i:02d}"
