@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import os
 import platform
 import tempfile
@@ -144,6 +145,7 @@ def main() -> None:
     p.add_argument("--modes", default="one,vec", help="of one, vec, workers, sweep")
     p.add_argument("--devices", default=None, help="e.g. cpu,cuda: the run on each device")
     args = p.parse_args()
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines go to stdout
     sets = _parse_sets(args.set)
     cfg = load_train_config(args.preset, **sets)
     if args.devices is not None:

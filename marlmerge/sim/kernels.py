@@ -219,7 +219,7 @@ def _roster_step(
 # ----------------------------------------------------------------------------------------------
 
 
-@kernel
+@kernel(inline=True)
 def observe_world(
     S: tuple,
     X: tuple,
@@ -267,7 +267,7 @@ def observe_world(
 # ----------------------------------------------------------------------------------------------
 
 
-@kernel
+@kernel(inline=True)
 def _needs_service(S: tuple, b: int, p: np.ndarray, k: int) -> int:
     """1 if world `b` needs the Python side before another call of `k` steps (also `WI_NEED`):
     too few free slots (two arrivals a step, and one merged ego from a `next_ego` in between),
@@ -279,7 +279,7 @@ def _needs_service(S: tuple, b: int, p: np.ndarray, k: int) -> int:
     return need
 
 
-@kernel
+@kernel(inline=True)
 def _short(S: tuple, b: int, p: np.ndarray, k: int) -> int:
     vf, vi, wf, wi, lanes, sched = S
     flowing = p[P_RAMP_FLOW] > 0.0  # ramp flow: a third stream of arrivals, the ramp's
