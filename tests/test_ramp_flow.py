@@ -280,6 +280,9 @@ def test_ramp_flow_pettingzoo_agents_appear_and_leave():
     assert len(seen) >= 20 and peak >= 2  # many merging vehicles, several at once
     assert outcomes.count(1) >= 0.8 * len(outcomes)  # gap acceptance mostly merges
     assert [a for a in env.possible_agents if a in seen] == env.possible_agents[: len(seen)]
+    extended = {**over, "ego.observation": "extended_accel"}  # the agents see the ego's layout
+    parallel_api_test(ramp_flow_parallel_env(overrides=extended, max_cycles=100), num_cycles=100)
+    assert ramp_flow_parallel_env(overrides=extended).observation_space("ramp_0").shape == (17,)
     with pytest.raises(ValueError, match=r"needs ramp flow: ramp\.flow_vph = 0"):
         ramp_flow_parallel_env()
     env.reset(seed=1)
@@ -325,3 +328,68 @@ def test_a_mix_of_scripted_and_learned_merging_vehicles():
     for bad, match in (("gap=0.5,idm=0.4", "sum to 0.9"), ("gap=2", "not SPEC=SHARE")):
         with pytest.raises(ValueError, match=match):
             run_ramp_flow(FLOW, bad, hours=0.1)
+
+
+def _check_extended(core: TrafficCore, cfg: ScenarioConfig) -> int:
+    """Each ramp agent's left-lane, time and command columns against the state; how many."""
+    roster, obs = core.ramp_agents(8)
+    st, rng, lim = core.state, cfg.ego.sensing_range_m, cfg.road.speed_limit_mps
+    checked = 0
+    for b, j in zip(*np.nonzero(roster.mask), strict=True):
+        s = roster.slots[b, j]
+        x, v = st.x_m[b, s], st.v_mps[b, s]
+        left = st.active[b] & (st.lane[b] == L.LEFT)
+        ahead = left & (st.x_m[b] >= x) & (st.x_m[b] - x <= rng)
+        behind = left & (st.x_m[b] < x) & (x - st.x_m[b] <= rng)
+        want_f = (rng, lim)
+        if ahead.any():
+            i = np.flatnonzero(ahead)[np.argmin(st.x_m[b][ahead])]
+            want_f = (st.x_m[b, i] - x, st.v_mps[b, i])
+        want_b = (-rng, lim)
+        if behind.any():
+            i = np.flatnonzero(behind)[np.argmax(st.x_m[b][behind])]
+            want_b = (st.x_m[b, i] - x, st.v_mps[b, i])
+        np.testing.assert_allclose(obs[b, j, 10:14], [want_f[0] / 100, want_f[1] / 30,
+                                   want_b[0] / 100, want_b[1] / 30], rtol=1e-12)  # fmt: skip
+        to_join = min((cfg.x_overlap_m - x) / max(v, 1e-9), 10.0) if x < cfg.x_overlap_m else 0.0
+        assert obs[b, j, 14] == pytest.approx(to_join / 10.0, rel=1e-9)
+        assert obs[b, j, 16] == core.vf[b, L.VF_ACC, s] / 5.0  # its last command
+        checked += 1
+    assert np.all(obs[~roster.mask] == 0.0)
+    return checked
+
+
+def test_ramp_agents_see_the_extended_layout_from_where_they_are():
+    """With `ego.observation = "extended_accel"` each ramp agent sees the paper's seven features
+    as before, then the left lane, the times to the join and merge points and its last command,
+    all measured from itself."""
+    from marlmerge.sim.observation import ramp_agent_features
+
+    cfg = FLOW.replace(**{"ego.observation": "extended_accel"})
+    core = TrafficCore(cfg, batch_size=3, seed=0)
+    paper = TrafficCore(FLOW, batch_size=3, seed=0)
+    policy = policy_from_spec("gap", FLOW)
+    nan, checked = np.full(3, np.nan), 0
+    for step in range(300):
+        (roster, obs), (_, obs7) = core.ramp_agents(8), paper.ramp_agents(8)
+        assert obs.shape[2] == len(ramp_agent_features(cfg)) == 17
+        np.testing.assert_array_equal(obs[..., :7], obs7)  # the same traffic, seen the same way
+        cmd = ramp_commands(policy, obs, roster.mask)
+        core.rollout(nan, roster=roster, roster_accel=cmd[..., 0])
+        paper.rollout(nan, roster=roster, roster_accel=cmd[..., 0])
+        if step % 25 == 24:
+            checked += _check_extended(core, cfg)
+    assert checked >= 10
+
+
+def test_a_shield_that_watches_the_left_lane_drives_ramp_agents():
+    """`gap@shield-left` needs the extended layout: the ramp's agents are simulated with it, and
+    a rule beside it in a mix drives in the same layout."""
+    from marlmerge.evaluation.ramp_flow import agents_scenario
+
+    policies, cfg = agents_scenario(FLOW, ["gap@shield-left", "gap"])
+    assert cfg.ego.observation == "extended" and len(policies) == 2
+    r = run_ramp_flow(FLOW, "gap@shield-left=0.5,gap=0.5", hours=0.05, worlds=2, seed=1, skip_s=60)
+    again = run_ramp_flow(FLOW, "gap@shield-left=0.5,gap=0.5", hours=0.05, worlds=2, seed=1,
+                          skip_s=60)  # fmt: skip
+    assert r.merged_vph > 0 and r.to_dict() | {"wall_s": 0} == again.to_dict() | {"wall_s": 0}

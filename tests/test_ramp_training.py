@@ -46,6 +46,9 @@ def _drive(env: RampFlowTorchEnv, n: int) -> list[torch.Tensor]:
 def test_the_ramp_group_passes_check_env_specs_and_resumes_bit_for_bit():
     env = RampFlowTorchEnv(overrides=OVER, num_worlds=3, seed=1)
     check_env_specs(env)
+    wide = RampFlowTorchEnv(overrides={**OVER, "ego.observation": "extended"}, num_worlds=2)
+    check_env_specs(wide)  # the agents see the ego's layout
+    assert wide.reset()["ramp", "observation"].shape == (2, wide.n_agents, 16)
     _drive(env, 60)
     saved = env.sim_state()
     expected = _drive(env, 80)
@@ -126,3 +129,7 @@ def test_the_trained_policy_drives_ramp_flow_and_bad_combinations_are_refused(tm
     assert "## Merge under ramp flow" in summary and "| quadq | run | ramp flow |" in summary
     assert main(["train", "ramp_flow", "--seeds", "0-1", "--out", str(tmp_path / "s")]) != 0
     assert "train its seeds one by one" in capsys.readouterr().err
+    mixed = f"{out}=0.5,gap@shield-left=0.5"  # the run sees the paper's layout, the shield more
+    assert main(["rampflow", mixed, "--hours", "0.05", "--skip", "60", "--worlds", "2"]) != 0
+    err = capsys.readouterr().err
+    assert "must see it alike" in err and "'extended'" in err and "'paper'" in err

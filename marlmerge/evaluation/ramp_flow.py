@@ -2,7 +2,7 @@
 
 Ramp vehicles arrive as their own Poisson stream, queue at the ramp's entrance if the ramp is
 full, follow each other on the ramp and merge, each an agent driven by one shared policy (a rule
-or a learned ego policy of the paper's observation layout: `marlmerge.evaluation.registry`)
+or a learned ego policy, seeing its own observation layout: `marlmerge.evaluation.registry`)
 while it is on the ramp; once it has joined the right lane it follows by IDM every simulator
 step, as a mainline driver (the views and training keep it an agent until its merge ends, as the
 ego: `docs/ramp-flow.md` says why they differ).
@@ -157,18 +157,40 @@ def ramp_commands(policy: object, obs: np.ndarray, mask: np.ndarray) -> np.ndarr
 
 
 def check_ramp_scenario(cfg: ScenarioConfig, who: str) -> None:
-    """Ramp flow needs `ramp.flow_vph > 0`, and its agents see the paper's observation layout;
-    `who` ("policy 'gap'", "scenario 'ramp_flow'") names what is checked in the errors."""
+    """Ramp flow needs `ramp.flow_vph > 0`; `who` ("policy 'gap'", "scenario 'ramp_flow'")
+    names what is checked in the error. Its agents see the ego's layout of `cfg`
+    (`ramp_agent_features`)."""
     if not cfg.ramp.flowing:
         raise ValueError(
-            f"ramp flow needs ramp.flow_vph > 0 (got {cfg.ramp.flow_vph}): set it in the "
+            f"{who}: ramp flow needs ramp.flow_vph > 0 (got {cfg.ramp.flow_vph}): set it in the "
             "scenario or with --ramp-flow"
         )
-    if cfg.ego.observation != "paper":
-        raise ValueError(
-            f"{who}: ramp agents see the paper's observation layout, not ego.observation = "
-            f"{cfg.ego.observation!r}"
-        )
+
+
+def agents_scenario(cfg: ScenarioConfig, specs: list[str]) -> tuple[list, ScenarioConfig]:
+    """The policies of `specs` (`policy_for_evaluation`) and the scenario the ramp agents are
+    simulated in: `cfg` with the ego-side settings (`EGO_SIDE_KEYS`: the observation layout
+    and the filter) of its learned policies, which must agree; rules drive in any."""
+    from marlmerge.evaluation.registry import policy_for_evaluation
+
+    loaded = [policy_for_evaluation(spec, cfg) for spec in specs]
+    own = {spec: scen for spec, (_, scen) in zip(specs, loaded, strict=True) if scen != cfg}
+    agents_cfg = next(iter(own.values()), cfg)
+    policies = []
+    for spec, (policy, scen) in zip(specs, loaded, strict=True):
+        if spec not in own and agents_cfg != cfg:  # a rule (or alike) in the agents' settings
+            policy, scen = policy_for_evaluation(spec, agents_cfg)
+        if scen != agents_cfg:
+            first = next(iter(own))
+            raise ValueError(
+                f"the policies of one ramp must see it alike: {first!r} drives with "
+                f"ego.observation = {agents_cfg.ego.observation!r} and ego.safety_filter = "
+                f"{agents_cfg.ego.safety_filter!r}, {spec!r} with {scen.ego.observation!r} and "
+                f"{scen.ego.safety_filter!r}"
+            )
+        policies.append(policy)
+    check_ramp_scenario(agents_cfg, f"policy {' / '.join(specs)!r}")
+    return policies, agents_cfg
 
 
 def parse_mix(driver: str) -> list[tuple[str, float]]:
@@ -233,18 +255,12 @@ def run_ramp_flow(
     `seed`."""
     import time
 
-    from marlmerge.evaluation.registry import policy_for_evaluation
-
     if not hours > 0 or not skip_s >= 0:
         raise ValueError(f"hours must be > 0 and skip_s >= 0, got hours={hours}, skip_s={skip_s}")
     if isinstance(worlds, bool) or not isinstance(worlds, int) or worlds < 1:
         raise ValueError(f"worlds must be an integer >= 1, got {worlds!r}")
     mix = parse_mix(driver)
-    policies = []
-    for spec, _ in mix:
-        policy, scenario = policy_for_evaluation(spec, cfg)
-        check_ramp_scenario(scenario, f"policy {spec!r}")
-        policies.append(policy)
+    policies, cfg = agents_scenario(cfg, [spec for spec, _ in mix])
     drivers = RampDrivers(policies, [share for _, share in mix], worlds, seed)
     start = time.perf_counter()
     core = TrafficCore(cfg, batch_size=worlds, seed=seed)

@@ -604,9 +604,8 @@ class TrafficCore:
     def ramp_agents(self, k: int) -> tuple[Roster, np.ndarray]:
         """Ramp flow: the first `k` vehicles on each world's ramp (downstream first) as agents
         (a `Roster`: pass it to `rollout` with their commands as `roster_accel`) and what each
-        sees, [B, k, F] float64 (`agent_features`: the paper's seven ego features, scaled, with
-        perfect sensing, then `on_ramp` with `ego.join = "chosen"`; zeros where the ramp holds
-        fewer; `roster.mask`)."""
+        sees, [B, k, F] float64 (`agent_features`: the ego's layout, scaled, measured from the
+        agent with perfect sensing; zeros where the ramp holds fewer; `roster.mask`)."""
         if not self.cfg.ramp.flowing:
             raise ValueError("ramp_agents needs ramp flow (ramp.flow_vph > 0)")
         rows = np.zeros((L.RO_ROWS, self.batch_size, k), dtype=np.int64)

@@ -41,6 +41,8 @@ from marlmerge.sim.layout import (
     P_EGO_T,
     P_LC_COOLDOWN,
     P_NOISE_ON,
+    P_OBS_EXTENDED,
+    P_OBS_ON_RAMP,
     P_POSITION_SCALE,
     P_RAMP_FLOW,
     P_SENSE_ON,
@@ -125,7 +127,13 @@ from marlmerge.sim.reward import (
     ego_to_blame,
     merge_gaps,
 )
-from marlmerge.sim.sensing import ego_observation, sense_fill, sense_measure, sensed_output
+from marlmerge.sim.sensing import (
+    agent_extended,
+    ego_observation,
+    sense_fill,
+    sense_measure,
+    sensed_output,
+)
 from marlmerge.sim.step import (
     deactivate,
     ego_gaps,
@@ -645,9 +653,10 @@ def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> N
 
 @kernel
 def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
-    """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, F]: the paper's
-    seven ego features with perfect sensing, its gap vehicles as `gap_vehicles` finds them, then
-    `on_ramp` if F = 8 (zeros where masked; `marlmerge.sim.observation.ramp_agent_features`)."""
+    """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, F], in the
+    ego's layout with perfect sensing: the paper's seven features with its gap vehicles as
+    `gap_vehicles` finds them, the extended columns (`agent_extended`), then `on_ramp` with
+    `ego.join = "chosen"` (zeros where masked; `marlmerge.sim.observation.ramp_agent_features`)."""
     vf, vi, wf, wi, lanes, sched = S
     for b in range(vf.shape[0]):
         pb = p[b]
@@ -658,13 +667,15 @@ def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -
                 for c in range(obs.shape[2]):
                     obs[b, j, c] = 0.0
                 continue
-            _, _, x_f, v_f, _, x_b, v_b, _ = gap_vehicles(S, b, pb, s)
+            front, back, x_f, v_f, _, x_b, v_b, _ = gap_vehicles(S, b, pb, s)
             obs[b, j, 0], obs[b, j, 1] = vf[b, VF_V, s] / ss, vf[b, VF_X, s] / ps
             obs[b, j, 2], obs[b, j, 3] = v_f / ss, x_f / ps
             obs[b, j, 4], obs[b, j, 5] = v_b / ss, x_b / ps
             obs[b, j, 6] = v_limit / ss
-            if obs.shape[2] > 7:  # ego.join = "chosen": on_ramp
-                obs[b, j, 7] = 1.0 if vi[b, VI_LANE, s] == RAMP else 0.0
+            if pb[P_OBS_EXTENDED] > 0.0:
+                agent_extended(S, b, pb, obs[b], j, s, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
+            if pb[P_OBS_ON_RAMP] > 0.0:  # ego.join = "chosen": on_ramp
+                obs[b, j, int(pb[P_OBS_ON_RAMP])] = 1.0 if vi[b, VI_LANE, s] == RAMP else 0.0
 
 
 @kernel

@@ -201,9 +201,9 @@ def ego_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
 
 
 def ramp_agent_features(cfg: ScenarioConfig) -> tuple[Feature, ...]:
-    """What a ramp-flow agent sees: the paper's seven features (perfect sensing), then
-    `on_ramp` with `ego.join = "chosen"`."""
-    return ego_layout("paper", cfg.ego.chooses_join)
+    """What a ramp-flow agent sees: the ego's layout (`ego_features`), measured from the agent
+    with perfect sensing and no occlusion."""
+    return ego_features(cfg)
 
 
 def ego_obs_size(cfg: ScenarioConfig) -> int:

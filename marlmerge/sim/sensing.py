@@ -56,6 +56,7 @@ from marlmerge.sim.layout import (
     P_X_OVERLAP,
     RAMP,
     RIGHT,
+    VF_ACC,
     VF_V,
     VF_X,
     VI_LANE,
@@ -167,6 +168,42 @@ def _left(
         dx_b = x - x_e
     dst[row, 10], dst[row, 11] = dx_f / ps, v_f / ss
     dst[row, 12], dst[row, 13] = dx_b / ps, v_b / ss
+
+
+@kernel
+def agent_extended(
+    S: tuple,
+    b: int,
+    p: np.ndarray,
+    dst: np.ndarray,
+    row: int,
+    s: int,
+    has_front: bool,
+    x_f: float,
+    v_f: float,
+    has_back: bool,
+    x_b: float,
+    v_b: float,
+) -> None:
+    """Ramp flow: columns 7-15 of the extended layouts (and 16 of `extended_accel`) for the ramp
+    agent in slot `s` into dst[row, :], as the ego's (`ego_observation`) but measured from the
+    agent, with perfect sensing and no occlusion; its last command (`VF_ACC`) for column 16.
+    The gap vehicles are the agent's (`gap_vehicles`)."""
+    vf, vi, wf, wi, lanes, sched = S
+    x, v, rng, v_limit = vf[b, VF_X, s], vf[b, VF_V, s], p[P_SENSING], p[P_V_LIMIT]
+    ps, ss = p[P_POSITION_SCALE], p[P_SPEED_SCALE]
+    _side(p, dst, row, x, has_front, x_f, v_f, has_back, x_b, v_b)
+    lead, follow = ll.neighbours_at(S, b, LEFT, x)
+    dx_f, lv_f, dx_b, lv_b = rng, v_limit, -rng, v_limit
+    if lead >= 0 and vf[b, VF_X, lead] - x <= rng:
+        dx_f, lv_f = vf[b, VF_X, lead] - x, vf[b, VF_V, lead]
+    if follow >= 0 and x - vf[b, VF_X, follow] <= rng:
+        dx_b, lv_b = vf[b, VF_X, follow] - x, vf[b, VF_V, follow]
+    dst[row, 10], dst[row, 11] = dx_f / ps, lv_f / ss
+    dst[row, 12], dst[row, 13] = dx_b / ps, lv_b / ss
+    _times(p, dst, row, x, v)
+    if p[P_OBS_ACCEL] > 0.0:
+        dst[row, 16] = vf[b, VF_ACC, s] / p[P_ACCEL_SCALE]
 
 
 @kernel(inline=True)
