@@ -667,13 +667,14 @@ def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -
                 for c in range(obs.shape[2]):
                     obs[b, j, c] = 0.0
                 continue
-            front, back, x_f, v_f, _, x_b, v_b, _ = gap_vehicles(S, b, pb, s)
+            gap = gap_vehicles(S, b, pb, s)
+            _, _, x_f, v_f, _, x_b, v_b, _ = gap
             obs[b, j, 0], obs[b, j, 1] = vf[b, VF_V, s] / ss, vf[b, VF_X, s] / ps
             obs[b, j, 2], obs[b, j, 3] = v_f / ss, x_f / ps
             obs[b, j, 4], obs[b, j, 5] = v_b / ss, x_b / ps
             obs[b, j, 6] = v_limit / ss
             if pb[P_OBS_EXTENDED] > 0.0:
-                agent_extended(S, b, pb, obs[b], j, s, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
+                agent_extended(S, b, pb, obs[b], j, s, gap)
             if pb[P_OBS_ON_RAMP] > 0.0:  # ego.join = "chosen": on_ramp
                 obs[b, j, int(pb[P_OBS_ON_RAMP])] = 1.0 if vi[b, VI_LANE, s] == RAMP else 0.0
 

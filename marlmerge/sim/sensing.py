@@ -172,27 +172,17 @@ def _left(
 
 @kernel
 def agent_extended(
-    S: tuple,
-    b: int,
-    p: np.ndarray,
-    dst: np.ndarray,
-    row: int,
-    s: int,
-    has_front: bool,
-    x_f: float,
-    v_f: float,
-    has_back: bool,
-    x_b: float,
-    v_b: float,
+    S: tuple, b: int, p: np.ndarray, dst: np.ndarray, row: int, s: int, gap: tuple
 ) -> None:
     """Ramp flow: columns 7-15 of the extended layouts (and 16 of `extended_accel`) for the ramp
     agent in slot `s` into dst[row, :], as the ego's (`ego_observation`) but measured from the
     agent, with perfect sensing and no occlusion; its last command (`VF_ACC`) for column 16.
-    The gap vehicles are the agent's (`gap_vehicles`)."""
+    `gap`: the agent's gap vehicles, as `gap_vehicles` returns them."""
     vf, vi, wf, wi, lanes, sched = S
     x, v, rng, v_limit = vf[b, VF_X, s], vf[b, VF_V, s], p[P_SENSING], p[P_V_LIMIT]
     ps, ss = p[P_POSITION_SCALE], p[P_SPEED_SCALE]
-    _side(p, dst, row, x, has_front, x_f, v_f, has_back, x_b, v_b)
+    front, back, x_f, v_f, _, x_b, v_b, _ = gap
+    _side(p, dst, row, x, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
     lead, follow = ll.neighbours_at(S, b, LEFT, x)
     dx_f, lv_f, dx_b, lv_b = rng, v_limit, -rng, v_limit
     if lead >= 0 and vf[b, VF_X, lead] - x <= rng:
