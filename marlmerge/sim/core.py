@@ -610,7 +610,7 @@ class TrafficCore:
             raise ValueError("ramp_agents needs ramp flow (ramp.flow_vph > 0)")
         rows = np.zeros((L.RO_ROWS, self.batch_size, k), dtype=np.int64)
         obs = np.zeros((self.batch_size, k, len(self.agent_features)))
-        kernels.ramp_agents(self.arrays, self.params, rows, obs)
+        kernels.ramp_agents(self.arrays, self.sensor, self.params, rows, obs)
         return Roster(rows), obs
 
     def observe_agents(self, roster: Roster) -> np.ndarray:
@@ -619,7 +619,7 @@ class TrafficCore:
         if not self.cfg.ramp.flowing:
             raise ValueError("observe_agents needs ramp flow (ramp.flow_vph > 0)")
         obs = np.zeros((self.batch_size, roster.n_agents, len(self.agent_features)))
-        kernels.observe_agents(self.arrays, self.params, roster.rows, obs)
+        kernels.observe_agents(self.arrays, self.sensor, self.params, roster.rows, obs)
         return obs
 
     def ego_gaps(self) -> EgoGaps:

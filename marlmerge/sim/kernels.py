@@ -635,7 +635,7 @@ def _rebuild_ramp(S: tuple, b: int) -> int:
 
 
 @kernel
-def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
+def ramp_agents(S: tuple, X: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
     """Ramp flow: the first K vehicles of each world's ramp list (downstream first) as agents,
     rows [RO_ROWS, B, K] (slot, id, mask; -1 / 0 where the ramp holds fewer), and what each
     sees, obs [B, K, F] (`observe_agents`)."""
@@ -648,11 +648,11 @@ def ramp_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> N
             else:
                 s = lanes[b, RAMP_LIST, j]
                 rows[RO_SLOT, b, j], rows[RO_ID, b, j], rows[RO_MASK, b, j] = s, vi[b, VI_ID, s], 1
-    observe_agents(S, p, rows, obs)
+    observe_agents(S, X, p, rows, obs)
 
 
 @kernel
-def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
+def observe_agents(S: tuple, X: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -> None:
     """Ramp flow: what each masked agent of rows [RO_ROWS, B, K] sees, obs [B, K, F], in the
     ego's layout with perfect sensing: the paper's seven features with its gap vehicles as
     `gap_vehicles` finds them, the extended columns (`agent_extended`), then `on_ramp` with
@@ -674,7 +674,7 @@ def observe_agents(S: tuple, p: np.ndarray, rows: np.ndarray, obs: np.ndarray) -
             obs[b, j, 4], obs[b, j, 5] = v_b / ss, x_b / ps
             obs[b, j, 6] = v_limit / ss
             if pb[P_OBS_EXTENDED] > 0.0:
-                agent_extended(S, b, pb, obs[b], j, s, gap)
+                agent_extended(S, X, b, pb, obs[b], j, s, gap)
             if pb[P_OBS_ON_RAMP] > 0.0:  # ego.join = "chosen": on_ramp
                 obs[b, j, int(pb[P_OBS_ON_RAMP])] = 1.0 if vi[b, VI_LANE, s] == RAMP else 0.0
 

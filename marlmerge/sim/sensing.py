@@ -100,7 +100,7 @@ def ego_observation(
     dst[row, 6] = p[P_V_LIMIT] / ss
     if p[P_OBS_EXTENDED] > 0.0:
         _side(p, dst, row, x_e, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
-        _left(S, b, p, dst, row, noise, zi)
+        _left(S, b, p, dst, row, noise, zi, EGO)
         _times(p, dst, row, x_e, v_e)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = wf[b, WF_EGO_CMD] / p[P_ACCEL_SCALE]
@@ -147,21 +147,33 @@ def _side(
 
 @kernel
 def _left(
-    S: tuple, b: int, p: np.ndarray, dst: np.ndarray, row: int, noise: np.ndarray, zi: int
+    S: tuple,
+    b: int,
+    p: np.ndarray,
+    dst: np.ndarray,
+    row: int,
+    noise: np.ndarray,
+    zi: int,
+    s: int,
 ) -> None:
-    """Columns 10-13: the nearest left-lane vehicles at or ahead of and behind the ego, within
-    the sensing range and not hidden (else the virtual vehicle at the range's edge)."""
+    """Columns 10-13: the nearest left-lane vehicles at or ahead of and behind slot `s` (the ego,
+    or a ramp agent), within the sensing range and, for the ego, not hidden (else the virtual
+    vehicle at the range's edge)."""
     vf, vi, wf, wi, lanes, sched = S
-    x_e, rng, v_limit = vf[b, VF_X, EGO], p[P_SENSING], p[P_V_LIMIT]
+    x_e, rng, v_limit = vf[b, VF_X, s], p[P_SENSING], p[P_V_LIMIT]
     ps, ss = p[P_POSITION_SCALE], p[P_SPEED_SCALE]
     lead, follow = ll.neighbours_at(S, b, LEFT, x_e)
     dx_f, v_f, dx_b, v_b = rng, v_limit, -rng, v_limit
-    if lead >= 0 and vf[b, VF_X, lead] - x_e <= rng and not hidden(S, b, p, lead):
+    if lead >= 0 and vf[b, VF_X, lead] - x_e <= rng and not (s == EGO and hidden(S, b, p, lead)):
         x, v_f = vf[b, VF_X, lead], vf[b, VF_V, lead]
         if zi >= 0:
             x, v_f = _noisy(p, noise, b, zi, NZ_LEFT_FRONT_X, x, v_f)
         dx_f = x - x_e
-    if follow >= 0 and x_e - vf[b, VF_X, follow] <= rng and not hidden(S, b, p, follow):
+    if (
+        follow >= 0
+        and x_e - vf[b, VF_X, follow] <= rng
+        and not (s == EGO and hidden(S, b, p, follow))
+    ):
         x, v_b = vf[b, VF_X, follow], vf[b, VF_V, follow]
         if zi >= 0:
             x, v_b = _noisy(p, noise, b, zi, NZ_LEFT_BACK_X, x, v_b)
@@ -172,25 +184,17 @@ def _left(
 
 @kernel
 def agent_extended(
-    S: tuple, b: int, p: np.ndarray, dst: np.ndarray, row: int, s: int, gap: tuple
+    S: tuple, X: tuple, b: int, p: np.ndarray, dst: np.ndarray, row: int, s: int, gap: tuple
 ) -> None:
     """Ramp flow: columns 7-15 of the extended layouts (and 16 of `extended_accel`) for the ramp
     agent in slot `s` into dst[row, :], as the ego's (`ego_observation`) but measured from the
     agent, with perfect sensing and no occlusion; its last command (`VF_ACC`) for column 16.
     `gap`: the agent's gap vehicles, as `gap_vehicles` returns them."""
     vf, vi, wf, wi, lanes, sched = S
-    x, v, rng, v_limit = vf[b, VF_X, s], vf[b, VF_V, s], p[P_SENSING], p[P_V_LIMIT]
-    ps, ss = p[P_POSITION_SCALE], p[P_SPEED_SCALE]
+    x, v = vf[b, VF_X, s], vf[b, VF_V, s]
     front, back, x_f, v_f, _, x_b, v_b, _ = gap
     _side(p, dst, row, x, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
-    lead, follow = ll.neighbours_at(S, b, LEFT, x)
-    dx_f, lv_f, dx_b, lv_b = rng, v_limit, -rng, v_limit
-    if lead >= 0 and vf[b, VF_X, lead] - x <= rng:
-        dx_f, lv_f = vf[b, VF_X, lead] - x, vf[b, VF_V, lead]
-    if follow >= 0 and x - vf[b, VF_X, follow] <= rng:
-        dx_b, lv_b = vf[b, VF_X, follow] - x, vf[b, VF_V, follow]
-    dst[row, 10], dst[row, 11] = dx_f / ps, lv_f / ss
-    dst[row, 12], dst[row, 13] = dx_b / ps, lv_b / ss
+    _left(S, b, p, dst, row, X[1], -1, s)
     _times(p, dst, row, x, v)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = vf[b, VF_ACC, s] / p[P_ACCEL_SCALE]
