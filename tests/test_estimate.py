@@ -19,6 +19,7 @@ from marlmerge.evaluation.estimate import (
 from marlmerge.evaluation.registry import policy_from_spec
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.proposal import (
+    N_STATS,
     ST_BETA,
     ST_GAP_N,
     ST_GAP_SUM,
@@ -143,7 +144,7 @@ def test_proposals_refuse_what_would_bias_or_break():
 def test_cross_entropy_moves_towards_the_elite():
     """Elite episodes drew adversarial right-lane vehicles and short gaps: the fit raises both."""
     n = 100
-    stats = np.zeros((n, 22))
+    stats = np.zeros((n, N_STATS))
     event = np.zeros(n, dtype=bool)
     event[:10] = True
     stats[:10, ST_PROFILE + 2] = 3.0  # adversarial

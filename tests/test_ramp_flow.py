@@ -302,6 +302,7 @@ def test_a_version_2_state_still_loads():
     for name, rows in (("vi", L.VI_ROWS_V2), ("wf", L.WF_ROWS_V2), ("wi", L.WI_ROWS_V2)):
         v2["arrays"][name] = saved["arrays"][name][:, :rows]
     v2["arrays"]["lanes"] = saved["arrays"]["lanes"][:, :2]
+    v2["arrays"]["vf"] = saved["arrays"]["vf"][:, : L.VF_ROWS_V3]  # no attention lapses then
     other = TrafficCore(ScenarioConfig(), batch_size=2, seed=9)
     other.load_state_dict(v2)
     for _ in range(30):

@@ -131,7 +131,7 @@ def test_sensing_state_continues_bit_for_bit_from_a_checkpoint():
     core = TrafficCore(cfg, batch_size=3, seed=4)
     _drive(core, 40)
     saved = core.state_dict()
-    assert saved["version"] == 3 and saved["arrays"]["ring"].shape == (3 * 4, 16)
+    assert saved["version"] == 4 and saved["arrays"]["ring"].shape == (3 * 4, 16)
     expected = _drive(core, 60)
     other = TrafficCore(cfg, batch_size=3, seed=99)
     other.load_state_dict(saved)
@@ -148,6 +148,7 @@ def test_a_version_1_state_still_loads():
     v1["arrays"]["vi"] = saved["arrays"]["vi"][:, : L.VI_ROWS_V2]  # no ramp flow then
     v1["arrays"]["wf"] = saved["arrays"]["wf"][:, : L.WF_ROWS_V2]
     v1["arrays"]["lanes"] = saved["arrays"]["lanes"][:, :2]
+    v1["arrays"]["vf"] = saved["arrays"]["vf"][:, : L.VF_ROWS_V3]
     del v1["arrays"]["ring"], v1["arrays"]["noise"]
     expected = _drive(core, 40)
     other = TrafficCore(cfg, batch_size=2, seed=7)

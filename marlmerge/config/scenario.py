@@ -158,6 +158,13 @@ class DriverConfig:
     """... and follows its leader at this time headway (still IDM: it never rear-ends)."""
     adversarial_accel_mps2: float = positive(2.5, 8.0)
     """... with this IDM maximum acceleration."""
+    lapse_rate_per_h: float = num(0.0, 0.0, 3600.0)
+    """Attention lapses a mainline driver begins per hour of driving (a Poisson rate, drawn per
+    simulator step). A lapsing driver holds its speed (no acceleration, no braking, no lane
+    change) for `lapse_s`, whatever is ahead of it. 0 (the paper's): drivers never lapse. The
+    rare events that importance sampling reaches best (`marlmerge estimate`)."""
+    lapse_s: float = positive(1.5, 10.0)
+    """How long an attention lapse lasts (rounded to whole simulator steps, at least one)."""
 
     @property
     def mix(self) -> tuple[float, float, float]:

@@ -12,11 +12,12 @@ score: an event scores `EVENT_SCORE`, below any gap; any other episode its small
 right-lane vehicles in the merge zone (m; negative while it overlaps one before joining). It
 keeps the `elite_fraction` most dangerous (or every event once there are that many) and refits
 the proposal to the elite's draws, each weighed by w (weighted maximum likelihood for the
-profiles and gaps, moments for the Betas), smoothed. The rounds stop when the elite is all
-events, when its danger level has not fallen for `STALL_ROUNDS` rounds (the family can get no
-closer), or after `rounds`. The final stage then runs fresh episodes under the last proposal,
-in batches, until the interval's half-width is at most
-`rel_ci` times the rate (after `min_events` events) or `episodes` are done.
+profiles and gaps, moments for the Betas; for attention lapses, lapses begun per step in the
+events alone), smoothed. The rounds stop when the elite is all events, when its danger level
+has not fallen for `STALL_ROUNDS` rounds (the family can get no closer), or after `rounds`. The
+final stage then runs fresh episodes under the last proposal, in batches, until the interval's
+half-width is at most `rel_ci` times the rate (after `min_events` events) or `episodes` are
+done.
 
 Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
 episodes used (fitting rounds included), the effective sample size of the event weights
@@ -47,14 +48,19 @@ from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.evaluation.metrics import Z_95, wilson_interval
 from marlmerge.io.files import load, save, write_text
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
+from marlmerge.sim.layout import lapse_step_probability
 from marlmerge.sim.proposal import (
     BETA_RANGE,
     GAP_SCALE_RANGE,
+    LAPSE_P_MAX,
+    N_LAPSE_CLASSES,
     N_PROFILES,
     N_STATS,
     ST_BETA,
     ST_GAP_N,
     ST_GAP_SUM,
+    ST_LAPSE_N,
+    ST_LAPSE_STEPS,
     ST_PROFILE,
     Proposal,
     natural_profiles,
@@ -70,6 +76,12 @@ PROFILE_FLOOR = 0.02
 STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
 """Settings that only say when to stop: a rerun may change them and keep the batches."""
 STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
+MIN_LAPSE_EVENTS = 5
+"""Events a round needs before it refits the lapse probabilities."""
+LAPSE_START_P = 0.02
+"""With attention lapses the fit starts from this per-step lapse probability for the driver
+behind the ego's gap (about one lapse while the ego crosses the merge zone): natural lapses are
+too rare for a first round to see any."""
 EVENT_SCORE = -1.0e6
 """The danger score of an event: below any gap an episode without one can have (m)."""
 
@@ -239,8 +251,53 @@ def fit_proposal(
         profile_p=tuple(profiles),  # type: ignore[arg-type]
         gap_scale=tuple(gaps),  # type: ignore[arg-type]
         beta=tuple(betas),
+        lapse_p=_fit_lapse(
+            cfg, current, _event_stats(batch, log_w), int(np.count_nonzero(batch["event"])), alpha
+        ),
     )
     return fitted, level
+
+
+def _fit_lapse(
+    cfg: ScenarioConfig, current: Proposal, s: np.ndarray, events: int, alpha: float
+) -> tuple[float, ...] | None:
+    """Per class, the weighted lapses per step that could begin one in the batch's events (`s`:
+    their summed statistics), between the natural probability (also where the events have no
+    such step) and `LAPSE_P_MAX`, smoothed; kept with fewer than `MIN_LAPSE_EVENTS` events
+    (None: lapses are not tilted). The events alone, not the elite by gap: a lapse makes no
+    gap smaller until the ego is ahead of the lapsing driver, so ranking by gap would pull the
+    fit back towards the natural one."""
+    if current.lapse_p is None:
+        return None
+    if events < MIN_LAPSE_EVENTS:
+        return current.lapse_p
+    p = lapse_step_probability(cfg)
+    fitted = []
+    for c, old in enumerate(current.lapse_p):
+        steps, lapses = s[ST_LAPSE_STEPS + c], s[ST_LAPSE_N + c]
+        fit = float(np.clip(lapses / steps, p, LAPSE_P_MAX)) if steps > 0 else p
+        fitted.append(alpha * fit + (1.0 - alpha) * old)
+    return tuple(fitted)
+
+
+def _event_stats(batch: dict[str, np.ndarray], log_w: np.ndarray) -> np.ndarray:
+    """The draw statistics summed over the batch's events, each weighed by its ratio."""
+    event = batch["event"]
+    if not event.any():
+        return np.zeros(batch["draw_stats"].shape[1])
+    w = np.where(event, np.exp(log_w - np.max(log_w[event])), 0.0)
+    return w @ batch["draw_stats"]
+
+
+def initial_proposal(cfg: ScenarioConfig) -> Proposal:
+    """Where the cross-entropy rounds start: the scenario's own draws, with lapses (if its
+    drivers lapse) at `LAPSE_START_P` per step for the driver behind the ego's gap."""
+    natural = Proposal.natural(cfg)
+    p = lapse_step_probability(cfg)
+    if p <= 0.0:
+        return natural
+    q = max(p, LAPSE_START_P)
+    return replace(natural, lapse_p=(q,) * N_LAPSE_CLASSES)
 
 
 STALL_ROUNDS = 2
@@ -343,7 +400,7 @@ class Estimator:
     def fit(self) -> tuple[Proposal, list[dict[str, Any]]]:
         """The cross-entropy rounds: the final proposal and what each round saw."""
         s = self.settings
-        proposal = Proposal.natural(self.cfg)
+        proposal = initial_proposal(self.cfg)
         rounds = []
         for r in range(s.rounds):
             data = self.batch((STAGE_CE, r), s.round_episodes, proposal)

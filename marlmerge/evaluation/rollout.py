@@ -23,8 +23,14 @@ from marlmerge.sim import (
     OUTCOME_TRUNCATED,
     TrafficCore,
 )
-from marlmerge.sim.layout import VF_X
-from marlmerge.sim.proposal import N_STATS, Proposal
+from marlmerge.sim.layout import VF_X, WF_LAPSE_LOGW, WF_LAPSE_N, WF_LAPSE_STEPS
+from marlmerge.sim.proposal import (
+    N_LAPSE_CLASSES,
+    N_STATS,
+    ST_LAPSE_N,
+    ST_LAPSE_STEPS,
+    Proposal,
+)
 from marlmerge.sim.streams import WorldSeed
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
@@ -160,8 +166,14 @@ class WeightTally:
         closer = running & in_zone & (gap < self.min_gap_m)
         self.min_gap_m[closer] = gap[closer]
         end = running & ended
-        self.log_w[end] = tilted.log_w[end]
+        wf = self.core.wf[end]
+        self.log_w[end] = tilted.log_w[end] + wf[:, WF_LAPSE_LOGW]  # the kernel's lapse draws
         self.stats[end] = tilted.stats[end]
+        n = N_LAPSE_CLASSES
+        self.stats[end, ST_LAPSE_STEPS : ST_LAPSE_STEPS + n] = wf[
+            :, WF_LAPSE_STEPS : WF_LAPSE_STEPS + n
+        ]
+        self.stats[end, ST_LAPSE_N : ST_LAPSE_N + n] = wf[:, WF_LAPSE_N : WF_LAPSE_N + n]
 
     def records(self) -> dict[str, np.ndarray]:
         return {"log_weight": self.log_w, "draw_stats": self.stats, "min_gap_m": self.min_gap_m}

@@ -47,7 +47,7 @@ PARALLEL_MIN_WORLDS = 64
 """From this many worlds on, `rollout` runs worlds in parallel threads (same results)."""
 WARMUP_CHUNK_STEPS = 10
 """Warm-up runs in calls of this many steps (each call reserves slots for its arrivals)."""
-STATE_DICT_VERSION = 3
+STATE_DICT_VERSION = 4
 """2: the sensor's arrays and the `wi` rows of sensing and the safety filter; version-1 states
 (no sensing) still load."""
 _ARRAYS = ("vf", "vi", "wf", "wi", "lanes", "sched", "ring", "noise")
@@ -138,8 +138,8 @@ class TrafficCore:
         self.world_tag = np.full(batch_size, -1, dtype=np.int64)
         """[B] the tag `scenario_source` gave each world's current traffic (-1: none)."""
         self.batch_size = batch_size
-        row = L.pack_params(cfg)
-        self.params = np.tile(row, (batch_size, 1))  # [B, P]: each world's parameters
+        self.proposal = proposal
+        self.params = np.tile(self._pack(cfg), (batch_size, 1))  # [B, P]: each world's parameters
         self.v_limit = cfg.road.speed_limit_mps
         self.ego_features = ego_features(cfg)
         """The ego's observation layout (`ego.observation`)."""
@@ -336,6 +336,8 @@ class TrafficCore:
         for b in rows:
             if self.cfg.sample.active:
                 self._draw_scenario(b)
+            if self.params[b, L.P_LAPSE_P] > 0.0:
+                self.wi[b, L.WI_LAPSE_KEY] = self.streams.lapse_key(b)
             self._place(b, self.streams.fill(b))
         kernels.rebuild_lanes(self.arrays, self.params, sel)
         n_warm = int(round(self.cfg.traffic.warmup_s / self.cfg.sim.dt_s))
@@ -359,7 +361,15 @@ class TrafficCore:
 
     def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:
         self.streams.cfgs[b] = cfg
-        self.params[b] = L.pack_params(cfg)
+        self.params[b] = self._pack(cfg)
+
+    def _pack(self, cfg: ScenarioConfig) -> np.ndarray:
+        """A world's parameters (`layout.pack_params`), with the proposal's lapse probability
+        for the drivers whose lapses it tilts (`marlmerge.sim.lapses`)."""
+        row = L.pack_params(cfg)
+        if self.proposal is not None and self.proposal.lapse_p is not None:
+            row[L.P_LAPSE_Q : L.P_LAPSE_Q + L.N_LAPSE_CLASSES] = self.proposal.lapse_p
+        return row
 
     def world_scenario(self, b: int) -> ScenarioConfig:
         """The scenario world `b` runs now: the core's, or the traffic it drew (`[sample]`)."""
@@ -752,7 +762,7 @@ class TrafficCore:
     def load_state_dict(self, saved: dict[str, Any]) -> None:
         """Restore a `state_dict` of a core with the same config and batch size."""
         version = saved.get("version")
-        if version not in (1, 2, STATE_DICT_VERSION):
+        if version not in (1, 2, 3, STATE_DICT_VERSION):
             raise ValueError(
                 f"core state version {version!r} is not {STATE_DICT_VERSION} (saved by another "
                 "version of marlmerge)"
@@ -769,6 +779,8 @@ class TrafficCore:
             arrays = _upgrade_v1(saved, self)
         if version in (1, 2):
             arrays = _upgrade_v2(arrays)
+        if version in (1, 2, 3):
+            arrays = _upgrade_v3(arrays)
         for name in _ARRAYS:
             a = np.asarray(arrays[name])
             if a.ndim != getattr(self, name).ndim:
@@ -844,8 +856,8 @@ def _upgrade_v2(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
     out = {name: np.asarray(a) for name, a in arrays.items()}
     for name, rows, old in (
         ("vi", L.VI_ROWS, L.VI_ROWS_V2),
-        ("wf", L.WF_ROWS, L.WF_ROWS_V2),
-        ("wi", L.WI_ROWS, L.WI_ROWS_V2),
+        ("wf", L.WF_ROWS_V3, L.WF_ROWS_V2),
+        ("wi", L.WI_ROWS_V3, L.WI_ROWS_V2),
     ):
         a = out[name]
         if a.shape[1] != old:
@@ -856,4 +868,21 @@ def _upgrade_v2(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
     if lanes.ndim != 3 or lanes.shape[1] != 2:
         raise ValueError(f"core state: array 'lanes' has shape {lanes.shape}")
     out["lanes"] = np.concatenate([lanes, np.full_like(lanes[:, :1], -1)], axis=1)
+    return out
+
+
+def _upgrade_v3(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The arrays of a version-3 state (saved before attention lapses): the new `vf`, `wf` and
+    `wi` rows zero (no driver lapsing, no lapse drawn)."""
+    out = {name: np.asarray(a) for name, a in arrays.items()}
+    for name, rows, old in (
+        ("vf", L.VF_ROWS, L.VF_ROWS_V3),
+        ("wf", L.WF_ROWS, L.WF_ROWS_V3),
+        ("wi", L.WI_ROWS, L.WI_ROWS_V3),
+    ):
+        a = out[name]
+        if a.ndim < 2 or a.shape[1] != old:
+            raise ValueError(f"core state: array {name!r} has shape {a.shape}")
+        pad = np.zeros((a.shape[0], rows - old) + a.shape[2:], dtype=a.dtype)
+        out[name] = np.concatenate([a, pad], axis=1)
     return out

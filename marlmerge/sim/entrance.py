@@ -38,6 +38,7 @@ from marlmerge.sim.layout import (
     SC_V0,
     VF_A,
     VF_AGE,
+    VF_LAPSE,
     VF_POL,
     VF_SINCE_LC,
     VF_T,
@@ -105,6 +106,7 @@ def fill_slot(
     vf[b, VF_POL, s] = politeness
     vf[b, VF_SINCE_LC, s] = p[P_LC_COOLDOWN]
     vf[b, VF_AGE, s] = 0.0
+    vf[b, VF_LAPSE, s] = 0.0
     vi[b, VI_LANE, s] = lane
     vi[b, VI_ACTIVE, s] = 1
     vi[b, VI_PROFILE, s] = profile

@@ -38,6 +38,7 @@ KERNEL_SOURCES = (
     "sim/jit.py",
     "sim/kernels.py",
     "sim/lanes.py",
+    "sim/lapses.py",
     "sim/layout.py",
     "sim/safety.py",
     "sim/sensing.py",

@@ -74,6 +74,7 @@ from marlmerge.sim.layout import (
     VF_A,
     VF_AGE,
     VF_GAP,
+    VF_LAPSE,
     VF_POL,
     VF_SINCE_LC,
     VF_T,
@@ -501,6 +502,7 @@ def _keep_merged_ego(S: tuple, b: int, p: np.ndarray) -> None:
     vf[b, VF_V0, s], vf[b, VF_T, s] = wf[b, WF_AFTER_V0], wf[b, WF_AFTER_T]
     vf[b, VF_POL, s] = wf[b, WF_AFTER_POL]
     vf[b, VF_SINCE_LC, s], vf[b, VF_AGE, s] = p[P_LC_COOLDOWN], vf[b, VF_AGE, EGO]
+    vf[b, VF_LAPSE, s] = 0.0
     vi[b, VI_LANE, s], vi[b, VI_ACTIVE, s], vi[b, VI_PROFILE, s] = RIGHT, 1, NEUTRAL
     vi[b, VI_ID, s], vi[b, VI_COLLIDED, s], vi[b, VI_FLAGS, s] = wi[b, WI_NEXT_ID], 0, 0
     wi[b, WI_NEXT_ID] += 1

@@ -26,6 +26,8 @@ Python side reads them through `TrafficState`, never by number.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from marlmerge.config import ScenarioConfig, latency_steps
@@ -58,11 +60,16 @@ NEUTRAL, COOPERATIVE, ADVERSARIAL = 0, 1, 2
 
 # ---- vf rows: per-slot floats
 VF_X, VF_V, VF_A, VF_V0, VF_T, VF_POL, VF_SINCE_LC, VF_AGE, VF_GAP, VF_VLEAD, VF_ACC = range(11)
-VF_ROWS = 11
+VF_LAPSE = 11
+VF_ROWS = 12
+VF_ROWS_V3 = 11
+"""`vf` rows of a version-3 core state (before attention lapses)."""
 """x_m (front bumper), v_mps, a_mps2 (realised over the last step), v0_mps (IDM desired speed),
 headway_s (IDM T), politeness (MOBIL p), since_lane_change_s, age_s (time on the road);
 scratch of the step: gap_m (bumper gap to the own-lane leader, inf if none), v_lead_mps (own
-speed if none), acc (the acceleration being applied)."""
+speed if none), acc (the acceleration being applied); lapse (simulator steps left of the
+driver's attention lapse after this one, `driver.lapse_rate_per_h`; 0: attentive or on its
+last lapsing step)."""
 
 # ---- vi rows: per-slot ints
 VI_LANE, VI_ACTIVE, VI_PROFILE, VI_ID, VI_COLLIDED = range(5)
@@ -103,8 +110,16 @@ that command says join now."""
     WF_AFTER_POL,
     WF_RAMP_TRAVEL_SUM,
     WF_RAMP_WAIT_SUM,
-) = range(17)
-WF_ROWS = 17
+    WF_LAPSE_LOGW,
+) = range(18)
+N_LAPSE_CLASSES = 2
+"""Tilted lapse draws by class c (`WF_LAPSE_STEPS + c`, `WF_LAPSE_N + c`, `P_LAPSE_Q + c`): how
+soon a lapse beginning now could close the driver's gap to the ego (`marlmerge.sim.lapses`)."""
+WF_LAPSE_STEPS = WF_LAPSE_LOGW + 1
+WF_LAPSE_N = WF_LAPSE_STEPS + N_LAPSE_CLASSES
+WF_ROWS = WF_LAPSE_N + N_LAPSE_CLASSES
+WF_ROWS_V3 = 17
+"""`wf` rows of a version-3 core state (before attention lapses)."""
 WF_ROWS_V2 = 15
 """`wf` rows of a version-2 core state (before ramp flow)."""
 """t_s; ego_time_s (since departure), ego_stall_s, ego_in_lane_s (since it joined the right lane);
@@ -114,7 +129,9 @@ x_back_m, v_front_mps, v_back_mps; the ego acceleration applied in the last step
 parameters (v0, T, politeness) the current ego drives with once it has merged and stays on the
 road as a mainline vehicle; ramp flow: the summed travel times of the ramp vehicles that
 passed the merge point (from their drawn arrival at the ramp start to x = 0) and the summed
-waits at the ramp's entrance of those that entered."""
+waits at the ramp's entrance of those that entered; attention lapses of the ego's gap-back
+driver while the ego runs in the merge zone (`marlmerge.sim.lapses`): the summed log p/q of
+their draws, and per class the steps drawn and the lapses begun."""
 
 # ---- wi rows: per-world ints
 (
@@ -159,8 +176,11 @@ waits at the ramp's entrance of those that entered."""
     WI_RAMP_QUEUE,
     WI_RAMP_QUEUE_MAX,
     WI_RAMP_TOWED,
-) = range(41)
-WI_ROWS = 41
+    WI_LAPSE_KEY,
+) = range(42)
+WI_ROWS = 42
+WI_ROWS_V3 = 41
+"""`wi` rows of a version-3 core state (before attention lapses)."""
 WI_ROWS_V2 = 33
 """`wi` rows of a version-2 core state (before ramp flow)."""
 """ego_outcome (OUTCOME_*), ego_count, next_id, background_collisions, steps (simulator steps of
@@ -177,7 +197,8 @@ current ego's episode (simulator steps whose command it overrode); ramp flow: th
 length, ramp vehicles that entered the ramp, joined the right lane and passed the merge point,
 collisions a ramp vehicle was in (before it passed the merge point; not counted as background
 collisions), the ramp's entrance queue and its longest since reset, and ramp vehicles towed away
-after a collision before they passed the merge point."""
+after a collision before they passed the merge point; the key of the world's attention-lapse
+draws since its reset (`marlmerge.sim.drivers.lapse_uniform`)."""
 WI_ROWS_V1 = 29
 """`wi` rows of a version-1 core state (before the sensing and safety-filter rows)."""
 WI_CALL = slice(WI_STEP_OUTCOME, WI_EGO_STEPS + 1)
@@ -299,6 +320,10 @@ _PARAMS = (
     "entrance_best",
     "ramp_zipper",
     "lc_sees_ramp",
+    "lapse_p",
+    "lapse_q",
+    "lapse_q_1",
+    "lapse_steps",
 )
 (
     P_DT,
@@ -387,8 +412,18 @@ _PARAMS = (
     P_ENTRANCE_BEST,
     P_RAMP_ZIPPER,
     P_LC_SEES_RAMP,
+    P_LAPSE_P,
+    P_LAPSE_Q,
+    P_LAPSE_Q_1,
+    P_LAPSE_STEPS,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
+
+
+def lapse_step_probability(cfg: ScenarioConfig) -> float:
+    """The chance that an attentive mainline driver begins an attention lapse in one simulator
+    step: 1 - exp(-rate dt), rate = `driver.lapse_rate_per_h` / 3600 per second."""
+    return -math.expm1(-cfg.driver.lapse_rate_per_h / 3600.0 * cfg.sim.dt_s)
 
 
 def pack_params(cfg: ScenarioConfig) -> np.ndarray:
@@ -501,4 +536,8 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "entrance_best": float(cfg.traffic.entrance_lane == "best"),
         "ramp_zipper": float(cfg.ramp.cooperation == "zipper"),
         "lc_sees_ramp": float(cfg.driver.lane_change_sees_ramp),
+        "lapse_p": lapse_step_probability(cfg),
+        "lapse_q": lapse_step_probability(cfg),
+        "lapse_q_1": lapse_step_probability(cfg),
+        "lapse_steps": float(max(round(cfg.driver.lapse_s / cfg.sim.dt_s), 1)),
     }

@@ -15,7 +15,11 @@ What is tilted (everything else is drawn as without a proposal):
   Beta(a, b) over the scenario's band in place of the uniform);
 - the **start speed of the first `TILTED_DEPARTURES` ramp vehicles** after a reset: Beta(a, b)
   over `ego.start_speed_mps` (two, because an env's reset ends the ego the core's reset sent
-  and sends the next one: the first ego an evaluation runs is the second departure).
+  and sends the next one: the first ego an evaluation runs is the second departure);
+- with attention lapses (`driver.lapse_rate_per_h`), the **lapses of the driver behind the
+  ego's gap** while the ego runs in the merge zone: each step it begins one with probability
+  `lapse_p[c]` instead of the natural p, by how soon a lapse could close its gap to the ego
+  (`marlmerge.sim.lapses.lapse_class`), drawn and weighed in the kernel.
 
 The road filled at a reset and everything after the window are drawn naturally. The weights are
 exact for each draw (closed forms below); `stats` keeps the sufficient statistics of the tilted
@@ -32,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.sim.layout import N_LAPSE_CLASSES
 
 N_PROFILES = 3
 TILTED_DEPARTURES = 2
@@ -45,10 +50,16 @@ ST_GAP_N = 8
 """stats [ST_GAP_N + lane]: number of tilted gaps of `lane`."""
 ST_BETA = 10
 """stats [ST_BETA + 3 * j + (0, 1, 2)]: n, sum y, sum y^2 of Beta draw j (`BETA_KEYS`) on [0, 1]."""
-N_STATS = ST_BETA + 3 * len(BETA_KEYS)
+ST_LAPSE_STEPS = ST_BETA + 3 * len(BETA_KEYS)
+"""stats [ST_LAPSE_STEPS + c]: steps of class c in which the tilted driver could begin a lapse;
+[ST_LAPSE_N + c]: lapses it began in them (the kernel's `WF_LAPSE_STEPS` / `WF_LAPSE_N` rows)."""
+ST_LAPSE_N = ST_LAPSE_STEPS + N_LAPSE_CLASSES
+N_STATS = ST_LAPSE_N + N_LAPSE_CLASSES
 BETA_RANGE = (0.5, 50.0)
 """Beta parameters allowed (>= 0.5 keeps every density finite inside the band)."""
 GAP_SCALE_RANGE = (0.1, 10.0)
+LAPSE_P_MAX = 0.2
+"""A tilted per-step lapse probability is in (0, LAPSE_P_MAX]."""
 Y_EPS = 1e-12
 
 
@@ -64,6 +75,10 @@ class Proposal:
     """Per lane: the tilted arrival gaps' mean, as a multiple of the natural mean."""
     beta: tuple[tuple[float, float], ...] = ((1.0, 1.0),) * len(BETA_KEYS)
     """(a, b) of each Beta draw in `BETA_KEYS` order; (1, 1) is the natural uniform."""
+    lapse_p: tuple[float, ...] | None = None
+    """Per-step probabilities that the driver behind the ego's gap begins an attention lapse
+    while the ego runs in the merge zone, one per `lapse_class` (a lapse could close its gap to
+    the ego within the lapse, or within three); None: the scenario's own."""
 
     def __post_init__(self) -> None:
         t0, t1 = self.window_s
@@ -84,6 +99,14 @@ class Proposal:
         for key, (a, b) in zip(BETA_KEYS, self.beta, strict=True):
             if not (BETA_RANGE[0] <= a <= BETA_RANGE[1] and BETA_RANGE[0] <= b <= BETA_RANGE[1]):
                 raise ValueError(f"proposal beta[{key}] = ({a}, {b}): each must be in {BETA_RANGE}")
+        if self.lapse_p is not None and (
+            len(self.lapse_p) != N_LAPSE_CLASSES
+            or not all(0.0 < q <= LAPSE_P_MAX for q in self.lapse_p)
+        ):
+            raise ValueError(
+                f"proposal lapse_p must be {N_LAPSE_CLASSES} probabilities in (0, {LAPSE_P_MAX}], "
+                f"got {self.lapse_p}"
+            )
 
     @classmethod
     def natural(cls, cfg: ScenarioConfig, window_s: tuple[float, float] | None = None) -> Proposal:
@@ -92,7 +115,10 @@ class Proposal:
         return cls(window_s or default_window_s(cfg), (p, p))
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        data = asdict(self)
+        if self.lapse_p is None:  # as written before lapses existed (estimate batches' names)
+            del data["lapse_p"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Proposal:
@@ -101,11 +127,17 @@ class Proposal:
             profile_p=tuple(tuple(p) for p in data["profile_p"]),  # type: ignore[arg-type]
             gap_scale=tuple(data["gap_scale"]),  # type: ignore[arg-type]
             beta=tuple(tuple(ab) for ab in data["beta"]),  # type: ignore[arg-type]
+            lapse_p=None if data.get("lapse_p") is None else tuple(data["lapse_p"]),
         )
 
     def check(self, cfg: ScenarioConfig) -> None:
         """The proposal draws every profile the scenario can (else the estimate is biased); with
         `[sample]` (each world its own mix) every profile."""
+        if self.lapse_p is not None and cfg.driver.lapse_rate_per_h <= 0.0:
+            raise ValueError(
+                f"proposal lapse_p = {self.lapse_p}: the scenario's drivers never lapse "
+                "(driver.lapse_rate_per_h = 0)"
+            )
         p = natural_profiles(cfg)
         for lane, probs in enumerate(self.profile_p):
             for k, (nat, q) in enumerate(zip(p, probs, strict=True)):

@@ -4,6 +4,7 @@
 
 1. MOBIL lane-change decisions on the pre-step state (every `lane_change_every_steps`);
 2. accelerations on the pre-step state (IDM and the interaction profiles for mainline drivers,
+   who hold their speed while an attention lapse lasts, `marlmerge.sim.lapses`;
    external commands for controlled highway agents, the ego's command; NaN: plain IDM) and the
    ballistic update (a vehicle that stops within the step stops where v reaches 0), in one sweep
    per lane; then the lane changes;
@@ -26,6 +27,7 @@ from marlmerge.sim import lanes as ll
 from marlmerge.sim.drivers import ego_merges_ahead, idm, profile_accel
 from marlmerge.sim.entrance import arrivals
 from marlmerge.sim.jit import kernel
+from marlmerge.sim.lapses import critical_slot, lapsing
 from marlmerge.sim.layout import (
     ADVERSARIAL,
     COOPERATIVE,
@@ -58,6 +60,7 @@ from marlmerge.sim.layout import (
     P_INTERACTION_RANGE,
     P_JOIN_CHOSEN,
     P_KEEP_RIGHT,
+    P_LAPSE_P,
     P_LC_COOLDOWN,
     P_LC_EVERY,
     P_LC_SEES_RAMP,
@@ -91,6 +94,7 @@ from marlmerge.sim.layout import (
     VF_ACC,
     VF_AGE,
     VF_GAP,
+    VF_LAPSE,
     VF_POL,
     VF_SINCE_LC,
     VF_T,
@@ -332,6 +336,8 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) 
     ramp_a = _ramp_accel(S, b, p, dp, ego_a, ego_idm, x_e, v_e) if filtering else 0.0
     moved = 0
     zipper = flowing and p[P_RAMP_ZIPPER] > 0.0
+    lapses = p[P_LAPSE_P] > 0.0
+    crit = critical_slot(S, b, p) if lapses else -1
     for lane in range(2):
         n = wi[b, WI_N_RIGHT + lane]
         x_lead, v_lead = INF, 0.0
@@ -357,6 +363,9 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) 
                 # (with joins when safe, both would wait for ever)
                 pend = m_pending and not (flowing and x_m - x < length)
                 acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pend, x_m, v_m)
+            if lapses and s != EGO and not flags & EV_CONTROLLED:
+                if lapsing(S, b, p, s, s == crit):
+                    acc = 0.0  # holds its speed
             vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED | EV_CHOOSES | EV_JOIN)
             _move(S, b, s, acc, dt)
             x_lead, v_lead = x, v
@@ -579,7 +588,7 @@ def lane_change_decisions(S: tuple, b: int, p: np.ndarray) -> int:
     for lane in range(2):
         for i in range(wi[b, WI_N_RIGHT + lane]):
             s = lanes[b, lane, i]
-            if s == EGO or vi[b, VI_FLAGS, s] & EV_CONTROLLED:
+            if s == EGO or vi[b, VI_FLAGS, s] & EV_CONTROLLED or vf[b, VF_LAPSE, s] > 0.0:
                 continue
             if vf[b, VF_SINCE_LC, s] < p[P_LC_COOLDOWN]:
                 continue

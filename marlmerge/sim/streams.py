@@ -1,13 +1,16 @@
-"""Every random draw of the simulator, made with seeded NumPy generators outside the kernels.
+"""Every random draw of the simulator, made with seeded NumPy generators outside the kernels
+(attention lapses are drawn inside them, from a key drawn here: `marlmerge.sim.lapses`).
 
 Each world has four generators, spawned from one `numpy.random.SeedSequence`: the arrivals of
 the right lane, of the left lane, the ego departures, and the road filled at a reset; with sensor
 noise on (`[sensing]`) a fifth, the ego sensor's measurement errors (spawning a fifth child leaves
-the first four as they were). Arrivals and departures are drawn ahead in fixed chunks (`CHUNK`
-vehicles: time, speed and the driver's parameters) into the world's `sched` ring, measurement
-errors in chunks of `CHUNK` measurements into its noise ring, which the kernels consume; the
-stream of numbers a world sees is therefore fixed by its seed alone, whatever the batch it runs
-in, the action repeat, or when the chunks happen to be drawn.
+the first four as they were); with `[sample]` a sixth, its drawn traffic; with attention lapses
+(`driver.lapse_rate_per_h`) a seventh, the key of each road's lapse draws.
+Arrivals and departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and the
+driver's parameters) into the world's `sched` ring, measurement errors in chunks of `CHUNK`
+measurements into its noise ring, which the kernels consume; the stream of numbers a world sees
+is therefore fixed by its seed alone, whatever the batch it runs in, the action repeat, or when
+the chunks happen to be drawn.
 
 Seeds: `seed=s` for a batch of B worlds gives world i the sequence `SeedSequence(s,
 spawn_key=(i,))`; an explicit per-world seed s_i gives `SeedSequence(s_i, spawn_key=(0,))`, the
@@ -54,6 +57,8 @@ NOISE_STREAM = 4
 """The sensor's stream, spawned only when its noise is on."""
 SCENARIO_STREAM = 5
 """The stream of a world's drawn traffic (`[sample]`), spawned only when sampling is on."""
+LAPSE_STREAM = 6
+"""The stream of a world's attention-lapse keys, spawned only when drivers lapse."""
 START_SPEED_HALF_WIDTH_MPS = 3.0
 """A world's ramp vehicles start within +- this of its drawn centre, m/s
 (`sample.ego_start_speed_mps`)."""
@@ -126,6 +131,8 @@ class Streams:
         self.n_streams = N_STREAMS + 1 if cfg.sensing.noisy else N_STREAMS
         if cfg.sample.active:
             self.n_streams = SCENARIO_STREAM + 1
+        if cfg.driver.lapse_rate_per_h > 0.0:
+            self.n_streams = LAPSE_STREAM + 1
         if proposal is not None:
             proposal.check(cfg)
         self.tilted = None if proposal is None else TiltedDraws(proposal, batch_size)
@@ -228,6 +235,11 @@ class Streams:
         out[:, SC_PROFILE] = NEUTRAL
         out[:, SC_V] = np.minimum(out[:, SC_V], out[:, SC_V0])
         return out
+
+    def lapse_key(self, b: int) -> int:
+        """The key of world `b`'s attention-lapse draws for its next road
+        (`marlmerge.sim.lapses.lapse_uniform`)."""
+        return int(self.gens[b][LAPSE_STREAM].integers(0, 2**31))
 
     def noise(self, b: int) -> np.ndarray:
         """Standard-normal errors of the next `CHUNK` measurements of world `b`'s ego sensor,

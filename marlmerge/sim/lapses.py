@@ -1,0 +1,129 @@
+"""Attention lapses of mainline drivers (`driver.lapse_rate_per_h`, `driver.lapse_s`), compiled.
+
+In each simulator step an attentive scripted mainline driver begins a lapse with probability
+p = 1 - exp(-rate dt) (`layout.lapse_step_probability`); a lapsing driver holds its speed (no
+acceleration, no braking, no lane change) for `lapse_s`, whatever is ahead of it. The draw is
+counter-based (`lapse_uniform`: a hash of the world's lapse key, the step and the vehicle id),
+so a world with lapses off draws nothing and its numbers are those of a core without them.
+
+Importance sampling (`marlmerge.sim.proposal`): while the ego runs in the merge zone, the
+driver behind its gap (`WI_BACK`) begins a lapse with the proposal's probability q_c of its
+class c instead of p (`P_LAPSE_Q + c`; `lapse_class`: whether such a lapse could close its gap
+to the ego within the lapse, or within a few; lapses that could not are drawn naturally and
+collisions come from the others), and the world
+keeps the exact log p/q_c of each such draw (`WF_LAPSE_LOGW`: log p/q_c for a lapse begun,
+log (1-p)/(1-q_c) for none) with the per-class counts the cross-entropy method refits q_c from
+(`WF_LAPSE_STEPS + c`, `WF_LAPSE_N + c`). Without a proposal q_c = p and every ratio is
+exactly 1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from marlmerge.sim.jit import kernel
+from marlmerge.sim.layout import (
+    EGO,
+    OUTCOME_NONE,
+    P_DT,
+    P_LAPSE_P,
+    P_LAPSE_Q,
+    P_LAPSE_STEPS,
+    P_LEN,
+    P_X_ZONE_START,
+    VF_LAPSE,
+    VF_V,
+    VF_X,
+    VI_ACTIVE,
+    VI_ID,
+    WF_LAPSE_LOGW,
+    WF_LAPSE_N,
+    WF_LAPSE_STEPS,
+    WI_BACK,
+    WI_LAPSE_KEY,
+    WI_OUTCOME,
+    WI_STEPS,
+)
+
+_MASK32 = 0xFFFFFFFF
+
+
+@kernel(inline=True)
+def _mix32(x: int) -> int:
+    """A 32-bit integer hash (xor-shift-multiply rounds); every product stays below 2^63, so
+    compiled int64 and plain Python integers give the same value."""
+    x = (x ^ (x >> 16)) & _MASK32
+    x = (x * 0x7FEB352D) & _MASK32
+    x = (x ^ (x >> 15)) & _MASK32
+    x = (x * 0x2C1B3C6D) & _MASK32
+    return (x ^ (x >> 16)) & _MASK32
+
+
+@kernel(inline=True)
+def lapse_uniform(key: int, step: int, vehicle_id: int) -> float:
+    """The uniform in (0, 1) that decides whether vehicle `vehicle_id` begins a lapse in
+    simulator step `step` of a world whose lapse key (drawn from its seed at each reset) is
+    `key`: the same seed gives the same lapses in any batch, order or backend."""
+    h = _mix32((key & _MASK32) ^ 0x5BD1E995)
+    h = _mix32(h ^ (step & _MASK32))
+    h = _mix32(h ^ (vehicle_id & _MASK32))
+    return (h + 0.5) * (1.0 / 4294967296.0)
+
+
+@kernel(inline=True)
+def critical_slot(S: tuple, b: int, p: np.ndarray) -> int:
+    """The driver whose lapses the proposal tilts in this step: the ego's gap-back vehicle
+    while the ego runs in the merge zone or after joining (-1: none)."""
+    vf, vi, wf, wi, lanes, sched = S
+    if vi[b, VI_ACTIVE, EGO] == 0 or wi[b, WI_OUTCOME] != OUTCOME_NONE:
+        return -1
+    if vf[b, VF_X, EGO] < p[P_X_ZONE_START]:
+        return -1
+    return wi[b, WI_BACK]
+
+
+REACH_LAPSES = 3.0
+"""Class 1 reaches this many lapse lengths ahead (`lapse_class`)."""
+
+
+@kernel(inline=True)
+def lapse_class(S: tuple, b: int, p: np.ndarray, s: int) -> int:
+    """How soon a lapse of the driver in slot `s`, beginning now, could close its bumper gap to
+    the ego (projected onto the road) at today's speeds: 0 within the lapse's length, 1 within
+    `REACH_LAPSES` lapse lengths, -1 later or never (not closing in: not tilted)."""
+    vf, vi, wf, wi, lanes, sched = S
+    closing_mps = vf[b, VF_V, s] - vf[b, VF_V, EGO]
+    if closing_mps <= 0.0:
+        return -1
+    reach_m = closing_mps * p[P_LAPSE_STEPS] * p[P_DT]
+    gap_m = vf[b, VF_X, EGO] - p[P_LEN] - vf[b, VF_X, s]
+    if gap_m < reach_m:
+        return 0
+    return 1 if gap_m < REACH_LAPSES * reach_m else -1
+
+
+@kernel(inline=True)
+def lapsing(S: tuple, b: int, p: np.ndarray, s: int, critical: bool) -> bool:
+    """Whether the driver in slot `s` lapses in this step (beginning one, or going on with
+    one), with the draw's weight kept when `critical` (see the module docstring)."""
+    vf, vi, wf, wi, lanes, sched = S
+    left = vf[b, VF_LAPSE, s]
+    if left > 0.0:
+        vf[b, VF_LAPSE, s] = left - 1.0
+        return True
+    p_nat = p[P_LAPSE_P]
+    c = lapse_class(S, b, p, s) if critical else -1
+    q = p[P_LAPSE_Q + c] if c >= 0 else p_nat
+    lapse = lapse_uniform(wi[b, WI_LAPSE_KEY], wi[b, WI_STEPS], vi[b, VI_ID, s]) < q
+    if c >= 0:
+        wf[b, WF_LAPSE_STEPS + c] += 1.0
+        if lapse:
+            wf[b, WF_LAPSE_N + c] += 1.0
+            wf[b, WF_LAPSE_LOGW] += math.log(p_nat / q)
+        else:
+            wf[b, WF_LAPSE_LOGW] += math.log1p(-p_nat) - math.log1p(-q)
+    if lapse:
+        vf[b, VF_LAPSE, s] = p[P_LAPSE_STEPS] - 1.0
+    return lapse
