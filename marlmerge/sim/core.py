@@ -853,17 +853,12 @@ def _upgrade_v1(saved: dict[str, Any], core: TrafficCore) -> dict[str, np.ndarra
 def _upgrade_v2(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
     """The arrays of a version-2 state (saved before ramp flow): the new `vi`, `wf` and `wi`
     rows zero, an empty ramp list."""
-    out = {name: np.asarray(a) for name, a in arrays.items()}
-    for name, rows, old in (
+    out = _zero_rows(
+        arrays,
         ("vi", L.VI_ROWS, L.VI_ROWS_V2),
         ("wf", L.WF_ROWS_V3, L.WF_ROWS_V2),
         ("wi", L.WI_ROWS_V3, L.WI_ROWS_V2),
-    ):
-        a = out[name]
-        if a.shape[1] != old:
-            raise ValueError(f"core state: array {name!r} has shape {a.shape}")
-        pad = np.zeros((a.shape[0], rows - old) + a.shape[2:], dtype=a.dtype)
-        out[name] = np.concatenate([a, pad], axis=1)
+    )
     lanes = out["lanes"]
     if lanes.ndim != 3 or lanes.shape[1] != 2:
         raise ValueError(f"core state: array 'lanes' has shape {lanes.shape}")
@@ -874,12 +869,19 @@ def _upgrade_v2(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
 def _upgrade_v3(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
     """The arrays of a version-3 state (saved before attention lapses): the new `vf`, `wf` and
     `wi` rows zero (no driver lapsing, no lapse drawn)."""
-    out = {name: np.asarray(a) for name, a in arrays.items()}
-    for name, rows, old in (
+    return _zero_rows(
+        arrays,
         ("vf", L.VF_ROWS, L.VF_ROWS_V3),
         ("wf", L.WF_ROWS, L.WF_ROWS_V3),
         ("wi", L.WI_ROWS, L.WI_ROWS_V3),
-    ):
+    )
+
+
+def _zero_rows(arrays: dict[str, Any], *grown: tuple[str, int, int]) -> dict[str, np.ndarray]:
+    """`arrays` with each (name, rows, old) array grown from `old` to `rows` rows (axis 1) by
+    rows of zeros; an array without `old` rows is refused."""
+    out = {name: np.asarray(a) for name, a in arrays.items()}
+    for name, rows, old in grown:
         a = out[name]
         if a.ndim < 2 or a.shape[1] != old:
             raise ValueError(f"core state: array {name!r} has shape {a.shape}")
