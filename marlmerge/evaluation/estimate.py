@@ -209,9 +209,7 @@ def fit_proposal(
     n_elite = max(int(math.ceil(settings.elite_fraction * score.size)), 1)
     level = float(np.sort(score)[n_elite - 1])
     elite = score <= level
-    log_w = batch["log_weight"]
-    w = np.where(elite, np.exp(log_w - np.max(log_w[elite])), 0.0)  # relative weights suffice
-    s = w @ batch["draw_stats"]  # [N_STATS] weighted sums over the elite
+    s = _weighted_stats(batch, elite)  # [N_STATS]
     alpha = settings.smoothing
 
     def mix(new: float, old: float) -> float:
@@ -252,7 +250,11 @@ def fit_proposal(
         gap_scale=tuple(gaps),  # type: ignore[arg-type]
         beta=tuple(betas),
         lapse_p=_fit_lapse(
-            cfg, current, _event_stats(batch, log_w), int(np.count_nonzero(batch["event"])), alpha
+            cfg,
+            current,
+            _weighted_stats(batch, batch["event"]),
+            int(np.count_nonzero(batch["event"])),
+            alpha,
         ),
     )
     return fitted, level
@@ -280,12 +282,13 @@ def _fit_lapse(
     return tuple(fitted)
 
 
-def _event_stats(batch: dict[str, np.ndarray], log_w: np.ndarray) -> np.ndarray:
-    """The draw statistics summed over the batch's events, each weighed by its ratio."""
-    event = batch["event"]
-    if not event.any():
+def _weighted_stats(batch: dict[str, np.ndarray], chosen: np.ndarray) -> np.ndarray:
+    """The draw statistics summed over the `chosen` episodes of the batch, each weighed by its
+    ratio relative to the largest among them (relative weights suffice for the fits)."""
+    if not chosen.any():
         return np.zeros(batch["draw_stats"].shape[1])
-    w = np.where(event, np.exp(log_w - np.max(log_w[event])), 0.0)
+    log_w = batch["log_weight"]
+    w = np.where(chosen, np.exp(log_w - np.max(log_w[chosen])), 0.0)
     return w @ batch["draw_stats"]
 
 

@@ -10,11 +10,10 @@ Importance sampling (`marlmerge.sim.proposal`): while the ego runs in the merge 
 driver behind its gap (`WI_BACK`) begins a lapse with the proposal's probability q_c of its
 class c instead of p (`P_LAPSE_Q + c`; `lapse_class`: whether such a lapse could close its gap
 to the ego within the lapse, or within a few; lapses that could not are drawn naturally and
-collisions come from the others), and the world
-keeps the exact log p/q_c of each such draw (`WF_LAPSE_LOGW`: log p/q_c for a lapse begun,
-log (1-p)/(1-q_c) for none) with the per-class counts the cross-entropy method refits q_c from
-(`WF_LAPSE_STEPS + c`, `WF_LAPSE_N + c`). Without a proposal q_c = p and every ratio is
-exactly 1.
+collisions come from the others), and the world keeps the exact log p/q_c of each such draw
+(`WF_LAPSE_LOGW`: log p/q_c for a lapse begun, log (1-p)/(1-q_c) for none) with the per-class
+counts the cross-entropy method refits q_c from (`WF_LAPSE_STEPS + c`, `WF_LAPSE_N + c`).
+Without a proposal q_c = p and every ratio is exactly 1.
 """
 
 from __future__ import annotations

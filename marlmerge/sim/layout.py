@@ -198,7 +198,7 @@ length, ramp vehicles that entered the ramp, joined the right lane and passed th
 collisions a ramp vehicle was in (before it passed the merge point; not counted as background
 collisions), the ramp's entrance queue and its longest since reset, and ramp vehicles towed away
 after a collision before they passed the merge point; the key of the world's attention-lapse
-draws since its reset (`marlmerge.sim.drivers.lapse_uniform`)."""
+draws since its reset (`marlmerge.sim.lapses.lapse_uniform`)."""
 WI_ROWS_V1 = 29
 """`wi` rows of a version-1 core state (before the sensing and safety-filter rows)."""
 WI_CALL = slice(WI_STEP_OUTCOME, WI_EGO_STEPS + 1)
@@ -504,8 +504,9 @@ def on_ramp_column(cfg: ScenarioConfig) -> int:
 
 def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
     """The opt-in options: the extended observations, sensing, the safety filter, the follower's
-    and the jerk reward terms (flags as 0/1)."""
+    and the jerk reward terms, attention lapses (flags as 0/1)."""
     e, sensing, w = cfg.ego, cfg.sensing, cfg.reward
+    p_lapse = lapse_step_probability(cfg)
     return {
         "obs_extended": float(e.observation in ("extended", "extended_accel")),
         "time_cap_s": e.time_to_merge_cap_s,
@@ -536,8 +537,8 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "entrance_best": float(cfg.traffic.entrance_lane == "best"),
         "ramp_zipper": float(cfg.ramp.cooperation == "zipper"),
         "lc_sees_ramp": float(cfg.driver.lane_change_sees_ramp),
-        "lapse_p": lapse_step_probability(cfg),
-        "lapse_q": lapse_step_probability(cfg),
-        "lapse_q_1": lapse_step_probability(cfg),
+        "lapse_p": p_lapse,
+        "lapse_q": p_lapse,  # the proposal's per class (`marlmerge.sim.lapses`): natural here
+        "lapse_q_1": p_lapse,
         "lapse_steps": float(max(round(cfg.driver.lapse_s / cfg.sim.dt_s), 1)),
     }

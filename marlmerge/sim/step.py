@@ -355,16 +355,16 @@ def advance(S: tuple, b: int, p: np.ndarray, ego_cmd: float, ego_chooses: bool) 
                 wf[b, WF_EGO_CMD] = acc
             elif flags & EV_CONTROLLED:
                 acc = vf[b, VF_ACC, s]
-            elif zipper and lane == RIGHT and vi[b, VI_PROFILE, s] != ADVERSARIAL:
-                acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, False, x_m, v_m)
-                acc, j_ramp = _zipper_yield(S, b, p, dp, s, x, v, x_lead, j_ramp, acc)
-            else:
-                # ramp flow: a driver alongside or past the ramp vehicle does not yield to it
-                # (with joins when safe, both would wait for ever)
-                pend = m_pending and not (flowing and x_m - x < length)
-                acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pend, x_m, v_m)
-            if lapses and s != EGO and not flags & EV_CONTROLLED:
-                if lapsing(S, b, p, s, s == crit):
+            else:  # a scripted mainline driver
+                if zipper and lane == RIGHT and vi[b, VI_PROFILE, s] != ADVERSARIAL:
+                    acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, False, x_m, v_m)
+                    acc, j_ramp = _zipper_yield(S, b, p, dp, s, x, v, x_lead, j_ramp, acc)
+                else:
+                    # ramp flow: a driver alongside or past the ramp vehicle does not yield to
+                    # it (with joins when safe, both would wait for ever)
+                    pend = m_pending and not (flowing and x_m - x < length)
+                    acc = _scripted_accel(S, b, s, dp, x, v, gap, vl, pend, x_m, v_m)
+                if lapses and lapsing(S, b, p, s, s == crit):
                     acc = 0.0  # holds its speed
             vi[b, VI_FLAGS, s] = flags & ~(EV_HIT | EV_TOW | EV_CONTROLLED | EV_CHOOSES | EV_JOIN)
             _move(S, b, s, acc, dt)

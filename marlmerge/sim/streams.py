@@ -5,12 +5,12 @@ Each world has four generators, spawned from one `numpy.random.SeedSequence`: th
 the right lane, of the left lane, the ego departures, and the road filled at a reset; with sensor
 noise on (`[sensing]`) a fifth, the ego sensor's measurement errors (spawning a fifth child leaves
 the first four as they were); with `[sample]` a sixth, its drawn traffic; with attention lapses
-(`driver.lapse_rate_per_h`) a seventh, the key of each road's lapse draws.
-Arrivals and departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and the
-driver's parameters) into the world's `sched` ring, measurement errors in chunks of `CHUNK`
-measurements into its noise ring, which the kernels consume; the stream of numbers a world sees
-is therefore fixed by its seed alone, whatever the batch it runs in, the action repeat, or when
-the chunks happen to be drawn.
+(`driver.lapse_rate_per_h`) a seventh, the key of each road's lapse draws. Arrivals and
+departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and the driver's
+parameters) into the world's `sched` ring, measurement errors in chunks of `CHUNK` measurements
+into its noise ring, which the kernels consume; the stream of numbers a world sees is therefore
+fixed by its seed alone, whatever the batch it runs in, the action repeat, or when the chunks
+happen to be drawn.
 
 Seeds: `seed=s` for a batch of B worlds gives world i the sequence `SeedSequence(s,
 spawn_key=(i,))`; an explicit per-world seed s_i gives `SeedSequence(s_i, spawn_key=(0,))`, the
