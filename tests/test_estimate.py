@@ -181,6 +181,11 @@ def test_estimate_resumes_bit_for_bit_and_refuses_another_request(tmp_path):
     other = EstimateSettings(episodes=60, batch=30, rounds=2, round_episodes=40, seed=5)
     with pytest.raises(ValueError, match="seed = 0, asked 5"):
         Estimator(policy, "hold", cfg, other, out).run()
+    request = out / "request.json"
+    older = {k: v for k, v in json.loads(request.read_text()).items() if k != "version"}
+    request.write_text(json.dumps(older))  # written before batches were versioned
+    with pytest.raises(ValueError, match="holds batches of estimate version 1"):
+        Estimator(policy, "hold", cfg, settings, out).run()
 
 
 def test_estimate_command_prints_the_summary_last(tmp_path, capsys):

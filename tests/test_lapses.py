@@ -9,11 +9,16 @@ import pytest
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.presets import resolve_config
-from marlmerge.evaluation.estimate import EstimateSettings, fit_proposal, initial_proposal
+from marlmerge.evaluation.estimate import (
+    LAPSE_GRID,
+    EstimateSettings,
+    fit_proposal,
+    initial_proposal,
+)
 from marlmerge.sim import layout as L
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.lapses import lapse_uniform
-from marlmerge.sim.proposal import N_STATS, ST_LAPSE_N, ST_LAPSE_STEPS, Proposal
+from marlmerge.sim.proposal import LAPSE_P_MAX, N_STATS, ST_LAPSE_N, ST_LAPSE_STEPS, Proposal
 
 LAPSING = ScenarioConfig().replace(**{"driver.lapse_rate_per_h": 600.0, "driver.lapse_s": 1.0})
 
@@ -92,7 +97,8 @@ def test_the_tilted_lapses_weigh_exactly():
         want += steps * no + lapses * (math.log(p / q_c) - no)
         assert steps.sum() > 0
     assert np.allclose(core.wf[:, L.WF_LAPSE_LOGW], want, rtol=1e-12, atol=1e-9)
-    assert core.wf[:, L.WF_LAPSE_N : L.WF_LAPSE_N + 2].sum() > 5
+    begun = core.wf[:, L.WF_LAPSE_N : L.WF_LAPSE_N + 2].sum(axis=1)  # [B]
+    assert begun.sum() > 5 and begun.max() == 1.0  # the first tilted lapse only
     w = np.exp(core.wf[:, L.WF_LAPSE_LOGW])
     assert abs(w.mean() - 1.0) < 4 * w.std(ddof=1) / math.sqrt(w.size)
     natural = TrafficCore(cfg, batch_size=20, seed=4, proposal=Proposal.natural(cfg))
@@ -119,8 +125,8 @@ def test_lapse_proposals_refuse_and_fit():
     assert "lapse_p" not in Proposal.natural(ScenarioConfig()).to_dict()
     n = 100
     stats = np.zeros((n, N_STATS))
-    stats[:, ST_LAPSE_STEPS] = 50.0
-    stats[:10, ST_LAPSE_N] = 5.0  # the events lapsed 5 times in 50 steps
+    stats[:, ST_LAPSE_STEPS] = 10.0
+    stats[:10, ST_LAPSE_N] = 1.0  # each event lapsed once, in its tenth step of class 0
     batch = {
         "event": np.arange(n) < 10,
         "log_weight": np.zeros(n),
@@ -128,11 +134,43 @@ def test_lapse_proposals_refuse_and_fit():
         "min_gap_m": np.full(n, 10.0),
     }
     fitted, _ = fit_proposal(cfg, start, batch, EstimateSettings(smoothing=1.0))
-    # class 1: no step of it in the events, so back to the natural probability
+    # alike events: the second moment is least where their likelihood is largest (q = 1/10);
+    # class 1: no step of it in the events, so the natural probability (the grid's first)
     p = L.lapse_step_probability(cfg)
-    assert fitted.lapse_p == pytest.approx((0.1, p))
+    assert fitted.lapse_p == pytest.approx((0.1, p), rel=0.06)
     few = {**batch, "event": np.arange(n) < 4}
     assert fit_proposal(cfg, start, few, EstimateSettings())[0].lapse_p == start.lapse_p
+
+
+def test_the_lapse_fit_minimises_the_estimates_second_moment():
+    """Events whose class-0 windows were 10 and 100 steps long, one lapse each, drawn under q =
+    0.02: the fit is the grid point where sum_i w_i w_q,i is least (closed form below), and that
+    is well below the cross-entropy fit (2 lapses in 110 steps), whose long windows would weigh
+    ((1 - p)/(1 - q))^99 each."""
+    cfg = resolve_config("lapses")
+    p, q_own = L.lapse_step_probability(cfg), 0.02
+    start = replace(initial_proposal(cfg), lapse_p=(q_own, q_own))
+    steps = np.array([10.0, 100.0] * 10)
+    stats = np.zeros((steps.size, N_STATS))
+    stats[:, ST_LAPSE_STEPS], stats[:, ST_LAPSE_N] = steps, 1.0
+
+    def log_ratio(q: float | np.ndarray) -> np.ndarray:  # [E, ...] the lapse part of log w
+        q = np.asarray(q)[None]
+        return np.log(p / q) + (steps[:, None] - 1.0) * (np.log1p(-p) - np.log1p(-q))
+
+    batch = {
+        "event": np.ones(steps.size, dtype=bool),
+        "log_weight": log_ratio(q_own)[:, 0],
+        "draw_stats": stats,
+        "min_gap_m": np.zeros(steps.size),
+    }
+    fitted, _ = fit_proposal(cfg, start, batch, EstimateSettings(smoothing=1.0))
+    grid = np.geomspace(p, LAPSE_P_MAX, LAPSE_GRID)
+    second = np.exp(log_ratio(q_own) + log_ratio(grid)).sum(axis=0)  # [G]
+    assert fitted.lapse_p[0] == pytest.approx(grid[np.argmin(second)], rel=1e-12)
+    cross_entropy = 2.0 / 110.0
+    at = np.exp(log_ratio(q_own) + log_ratio(np.array([fitted.lapse_p[0], cross_entropy])))
+    assert at.sum(axis=0)[0] < 0.9 * at.sum(axis=0)[1]
 
 
 def test_a_version_3_state_still_loads():

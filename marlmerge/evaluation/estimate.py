@@ -12,12 +12,13 @@ score: an event scores `EVENT_SCORE`, below any gap; any other episode its small
 right-lane vehicles in the merge zone (m; negative while it overlaps one before joining). It
 keeps the `elite_fraction` most dangerous (or every event once there are that many) and refits
 the proposal to the elite's draws, each weighed by w (weighted maximum likelihood for the
-profiles and gaps, moments for the Betas; for attention lapses, lapses begun per step in the
-events alone), smoothed. The rounds stop when the elite is all events, when its danger level
-has not fallen for `STALL_ROUNDS` rounds (the family can get no closer), or after `rounds`. The
-final stage then runs fresh episodes under the last proposal, in batches, until the interval's
-half-width is at most `rel_ci` times the rate (after `min_events` events) or `episodes` are
-done.
+profiles and gaps, moments for the Betas), smoothed. Attention lapses are fitted to the events
+alone, pooled over the rounds so far: the probabilities that minimise the estimate's second
+moment as those events measure it (`_fit_lapse`). The rounds stop when the elite is all events,
+when its danger level has not fallen for `STALL_ROUNDS` rounds (the family can get no closer),
+or after `rounds`. The final stage then runs fresh episodes under the last proposal, in
+batches, until the interval's half-width is at most `rel_ci` times the rate (after
+`min_events` events) or `episodes` are done.
 
 Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
 episodes used (fitting rounds included), the effective sample size of the event weights
@@ -28,7 +29,8 @@ would have needed, rate (1 - rate) / se^2. An estimate with few effective events
 
 Every batch is written to `OUT/batches/` as it finishes, and `OUT/request.json` records what
 was asked: a rerun with the same request reuses the batches (an interrupted estimate resumes,
-bit for bit); a different request refuses, naming what differs. Episode e of stage s, batch i is
+bit for bit); a different request, or batches drawn by another `ESTIMATE_VERSION`, refuses,
+naming what differs. Episode e of stage s, batch i is
 the first ego of a world seeded `SeedSequence(seed, spawn_key=(s, i, e))`.
 """
 
@@ -73,11 +75,17 @@ MIN_TRUSTED_ESS = 30.0
 DEFAULT_REL_CI = 0.2
 PROFILE_FLOOR = 0.02
 """A fitted profile probability is at least this where the scenario draws the profile."""
+ESTIMATE_VERSION = 2
+"""How the batches are drawn (2: the first tilted lapse only, the lapse fit by second
+moment); a folder of another version is
+refused rather than resumed (1: before the field existed)."""
 STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
 """Settings that only say when to stop: a rerun may change them and keep the batches."""
 STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
 MIN_LAPSE_EVENTS = 5
-"""Events a round needs before it refits the lapse probabilities."""
+"""Events the rounds need (pooled) before they fit the lapse probabilities to them."""
+LAPSE_GRID = 48
+"""Candidate probabilities per lapse class, log-spaced from p to `LAPSE_P_MAX`."""
 LAPSE_START_P = 0.02
 """With attention lapses the fit starts from this per-step lapse probability for the driver
 behind the ego's gap (about one lapse while the ego crosses the merge zone): natural lapses are
@@ -201,10 +209,12 @@ def fit_proposal(
     current: Proposal,
     batch: dict[str, np.ndarray],
     settings: EstimateSettings,
+    events: dict[str, np.ndarray] | None = None,
 ) -> tuple[Proposal, float]:
     """One cross-entropy step: the proposal refitted to the elite of `batch` (drawn under
     `current`), smoothed towards `current`, and the elite's danger level (`EVENT_SCORE`: events
-    only)."""
+    only). The lapse probabilities are fitted to `events` (`events_of` every round so far;
+    default: those of `batch`)."""
     score = danger_score(batch["event"], batch["min_gap_m"])
     n_elite = max(int(math.ceil(settings.elite_fraction * score.size)), 1)
     level = float(np.sort(score)[n_elite - 1])
@@ -250,36 +260,67 @@ def fit_proposal(
         gap_scale=tuple(gaps),  # type: ignore[arg-type]
         beta=tuple(betas),
         lapse_p=_fit_lapse(
-            cfg,
-            current,
-            _weighted_stats(batch, batch["event"]),
-            int(np.count_nonzero(batch["event"])),
-            alpha,
+            cfg, current, events_of(batch, current) if events is None else events, alpha
         ),
     )
     return fitted, level
 
 
 def _fit_lapse(
-    cfg: ScenarioConfig, current: Proposal, s: np.ndarray, events: int, alpha: float
+    cfg: ScenarioConfig, current: Proposal, events: dict[str, np.ndarray], alpha: float
 ) -> tuple[float, ...] | None:
-    """Per class, the weighted lapses per step that could begin one in the batch's events (`s`:
-    their summed statistics), between the natural probability (also where the events have no
-    such step) and `LAPSE_P_MAX`, smoothed; kept with fewer than `MIN_LAPSE_EVENTS` events
-    (None: lapses are not tilted). The events alone, not the elite by gap: a lapse makes no
-    gap smaller until the ego is ahead of the lapsing driver, so ranking by gap would pull the
-    fit back towards the natural one."""
+    """The lapse probabilities (one per class, between the natural p and `LAPSE_P_MAX`) that
+    minimise the estimate's second moment over the `events` seen so far, smoothed; kept with
+    fewer than `MIN_LAPSE_EVENTS` events (None: lapses are not tilted).
+
+    Under q an event's weight would be w_q = w · exp(L(q) - L(q_own)), where L is the lapse part
+    of its log ratio (`lapse_log_ratio`; q_own: the proposal it was drawn under, `lapse_q`), and
+    the second moment E_q[w_q^2 1_event] = E_p[w_q 1_event] is estimated from the events by
+    sum w · w_q, searched on a grid. Unlike a cross-entropy fit (lapses per step), this weighs
+    what a high q costs in long windows: each step without a lapse multiplies the weight by
+    (1 - p) / (1 - q) > 1. The events alone, not the elite by gap: a lapse makes no gap smaller
+    until the ego is ahead of the lapsing driver."""
     if current.lapse_p is None:
         return None
-    if events < MIN_LAPSE_EVENTS:
+    if np.count_nonzero(events["event"]) < MIN_LAPSE_EVENTS:
         return current.lapse_p
     p = lapse_step_probability(cfg)
-    fitted = []
-    for c, old in enumerate(current.lapse_p):
-        steps, lapses = s[ST_LAPSE_STEPS + c], s[ST_LAPSE_N + c]
-        fit = float(np.clip(lapses / steps, p, LAPSE_P_MAX)) if steps > 0 else p
-        fitted.append(alpha * fit + (1.0 - alpha) * old)
-    return tuple(fitted)
+    grid = np.geomspace(p, LAPSE_P_MAX, LAPSE_GRID)  # [G]
+    stats, log_w = events["draw_stats"], events["log_weight"]
+    base = 2.0 * log_w - lapse_log_ratio(stats, p, events["lapse_q"])  # [E]
+    total = base.reshape(-1, *([1] * N_LAPSE_CLASSES))  # [E, 1, ...]
+    for c in range(N_LAPSE_CLASSES):  # + L_c(q_c) on axis c: [E, G, ..., G]
+        k = stats[:, ST_LAPSE_N + c, None]
+        n = stats[:, ST_LAPSE_STEPS + c, None]
+        part = k * np.log(p / grid) + (n - k) * (np.log1p(-p) - np.log1p(-grid))  # [E, G]
+        shape = [-1] + [1] * N_LAPSE_CLASSES
+        shape[c + 1] = grid.size
+        total = total + part.reshape(shape)
+    peak = total.max(axis=0)
+    second = peak + np.log(np.exp(total - peak).sum(axis=0))  # log sum_i [G, ..., G]
+    best = np.unravel_index(int(np.argmin(second)), second.shape)
+    return tuple(
+        float(alpha * grid[i] + (1.0 - alpha) * old)
+        for i, old in zip(best, current.lapse_p, strict=True)
+    )
+
+
+def events_of(batch: dict[str, np.ndarray], proposal: Proposal) -> dict[str, np.ndarray]:
+    """The events of a batch drawn under `proposal`, with the lapse probabilities they were
+    drawn under (`lapse_q` [E, N_LAPSE_CLASSES]) where lapses are tilted."""
+    events = {k: v[batch["event"]] for k, v in batch.items()}
+    if proposal.lapse_p is not None:
+        events["lapse_q"] = np.tile(proposal.lapse_p, (len(events["event"]), 1))
+    return events
+
+
+def lapse_log_ratio(stats: np.ndarray, p: float, q: np.ndarray) -> np.ndarray:
+    """The lapse part of each episode's log ratio [E] from its draw statistics [E, N_STATS]
+    under per-class proposal probabilities q ([N_LAPSE_CLASSES] or [E, N_LAPSE_CLASSES]):
+    log p/q_c per lapse begun, log (1 - p)/(1 - q_c) per tilted step without one."""
+    k = stats[:, ST_LAPSE_N : ST_LAPSE_N + N_LAPSE_CLASSES]  # [E, C]
+    n = stats[:, ST_LAPSE_STEPS : ST_LAPSE_STEPS + N_LAPSE_CLASSES]
+    return (k * np.log(p / q) + (n - k) * (np.log1p(-p) - np.log1p(-q))).sum(axis=1)
 
 
 def _weighted_stats(batch: dict[str, np.ndarray], chosen: np.ndarray) -> np.ndarray:
@@ -344,6 +385,7 @@ class Estimator:
         self.policy, self.cfg, self.settings = policy, cfg, settings
         self.out = Path(out)
         self.request = {
+            "version": ESTIMATE_VERSION,
             "policy": policy_name,
             "scenario": to_dict(cfg),
             "settings": asdict(settings),
@@ -359,6 +401,12 @@ class Estimator:
             write_text(path, json.dumps(self.request, indent=1))
             return
         old = json.loads(path.read_text())
+        if old.get("version", 1) != ESTIMATE_VERSION:
+            raise ValueError(
+                f"{self.out} holds batches of estimate version {old.get('version', 1)}, drawn "
+                f"as this one ({ESTIMATE_VERSION}) no longer draws them; use another --out or "
+                "delete it"
+            )
         for key in ("policy", "scenario"):
             if old.get(key) != self.request[key]:
                 raise ValueError(
@@ -405,9 +453,12 @@ class Estimator:
         s = self.settings
         proposal = initial_proposal(self.cfg)
         rounds = []
+        seen: list[dict[str, np.ndarray]] = []  # the events of every round so far
         for r in range(s.rounds):
             data = self.batch((STAGE_CE, r), s.round_episodes, proposal)
-            fitted, level = fit_proposal(self.cfg, proposal, data, s)
+            seen.append(events_of(data, proposal))
+            pooled = {k: np.concatenate([e[k] for e in seen]) for k in seen[-1]}
+            fitted, level = fit_proposal(self.cfg, proposal, data, s, events=pooled)
             rounds.append(
                 {
                     "round": r,

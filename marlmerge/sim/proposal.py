@@ -19,7 +19,8 @@ What is tilted (everything else is drawn as without a proposal):
 - with attention lapses (`driver.lapse_rate_per_h`), the **lapses of the driver behind the
   ego's gap** while the ego runs in the merge zone: each step it begins one with probability
   `lapse_p[c]` instead of the natural p, by how soon a lapse could close its gap to the ego
-  (`marlmerge.sim.lapses.lapse_class`), drawn and weighed in the kernel.
+  (`marlmerge.sim.lapses.lapse_class`), until the first such lapse; drawn and weighed in the
+  kernel.
 
 The road filled at a reset and everything after the window are drawn naturally. The weights are
 exact for each draw (closed forms below); `stats` keeps the sufficient statistics of the tilted
