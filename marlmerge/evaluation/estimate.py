@@ -30,8 +30,8 @@ would have needed, rate (1 - rate) / se^2. An estimate with few effective events
 Every batch is written to `OUT/batches/` as it finishes, and `OUT/request.json` records what
 was asked: a rerun with the same request reuses the batches (an interrupted estimate resumes,
 bit for bit); a different request, or batches drawn by another `ESTIMATE_VERSION`, refuses,
-naming what differs. Episode e of stage s, batch i is
-the first ego of a world seeded `SeedSequence(seed, spawn_key=(s, i, e))`.
+naming what differs. Episode e of stage s, batch i is the first ego of a world seeded
+`SeedSequence(seed, spawn_key=(s, i, e))`.
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ PROFILE_FLOOR = 0.02
 """A fitted profile probability is at least this where the scenario draws the profile."""
 ESTIMATE_VERSION = 2
 """How the batches are drawn (2: the first tilted lapse only, the lapse fit by second
-moment); a folder of another version is
-refused rather than resumed (1: before the field existed)."""
+moment); a folder of another version is refused rather than resumed (1: before the field
+existed)."""
 STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
 """Settings that only say when to stop: a rerun may change them and keep the batches."""
 STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
@@ -290,9 +290,8 @@ def _fit_lapse(
     base = 2.0 * log_w - lapse_log_ratio(stats, p, events["lapse_q"])  # [E]
     total = base.reshape(-1, *([1] * N_LAPSE_CLASSES))  # [E, 1, ...]
     for c in range(N_LAPSE_CLASSES):  # + L_c(q_c) on axis c: [E, G, ..., G]
-        k = stats[:, ST_LAPSE_N + c, None]
-        n = stats[:, ST_LAPSE_STEPS + c, None]
-        part = k * np.log(p / grid) + (n - k) * (np.log1p(-p) - np.log1p(-grid))  # [E, G]
+        k, n = stats[:, ST_LAPSE_N + c, None], stats[:, ST_LAPSE_STEPS + c, None]
+        part = _lapse_log_terms(k, n, p, grid)  # [E, G]
         shape = [-1] + [1] * N_LAPSE_CLASSES
         shape[c + 1] = grid.size
         total = total + part.reshape(shape)
@@ -320,7 +319,13 @@ def lapse_log_ratio(stats: np.ndarray, p: float, q: np.ndarray) -> np.ndarray:
     log p/q_c per lapse begun, log (1 - p)/(1 - q_c) per tilted step without one."""
     k = stats[:, ST_LAPSE_N : ST_LAPSE_N + N_LAPSE_CLASSES]  # [E, C]
     n = stats[:, ST_LAPSE_STEPS : ST_LAPSE_STEPS + N_LAPSE_CLASSES]
-    return (k * np.log(p / q) + (n - k) * (np.log1p(-p) - np.log1p(-q))).sum(axis=1)
+    return _lapse_log_terms(k, n, p, q).sum(axis=1)
+
+
+def _lapse_log_terms(k: np.ndarray, n: np.ndarray, p: float, q: np.ndarray) -> np.ndarray:
+    """log p/q per lapse begun (k of them) and log (1 - p)/(1 - q) per other tilted step (n - k
+    of the n), broadcast over the shapes of k, n and q."""
+    return k * np.log(p / q) + (n - k) * (np.log1p(-p) - np.log1p(-q))
 
 
 def _weighted_stats(batch: dict[str, np.ndarray], chosen: np.ndarray) -> np.ndarray:
