@@ -31,12 +31,13 @@ PAIRS = (
     "gap,grid_dense_adversarial",
     "gap,lapses",
     "gap,lapses_heldout",
+    "gap,lapses_heldout2",
     "gap,lapses_rare",
 )
 """Rule policies (nothing to train): rates near 1e-2, 3e-4 and lower on the grid's roads, where
 collisions come from how the drawn drivers line up; near 1e-4 and 1e-5 with drivers who lapse
-(`envs/lapses*.toml`; `lapses_heldout` drawn from a fixed seed, never tuned on), where they
-come from lapses the proposal can aim at."""
+(`envs/lapses*.toml`; the two `lapses_heldout*` drawn from fixed seeds, the second never used
+to tune the estimator), where they come from lapses the proposal can aim at."""
 
 
 def estimate(pair: str, method: str, args: argparse.Namespace) -> dict:
