@@ -32,12 +32,15 @@ PAIRS = (
     "gap,lapses",
     "gap,lapses_heldout",
     "gap,lapses_heldout2",
+    "gap,lapses_heldout3",
+    "gap,lapses_heldout4",
     "gap,lapses_rare",
 )
 """Rule policies (nothing to train): rates near 1e-2, 3e-4 and lower on the grid's roads, where
-collisions come from how the drawn drivers line up; near 1e-4 and 1e-5 with drivers who lapse
-(`envs/lapses*.toml`; the two `lapses_heldout*` drawn from fixed seeds, the second never used
-to tune the estimator), where they come from lapses the proposal can aim at."""
+collisions come from how the drawn drivers line up; near 1e-3 to 1e-5 with drivers who lapse
+(`envs/lapses*.toml`; the four `lapses_heldout*` drawn from fixed seeds, each committed before
+the change of the estimator it first checked), where they come from lapses the proposal can aim
+at."""
 
 
 def estimate(pair: str, method: str, args: argparse.Namespace) -> dict:

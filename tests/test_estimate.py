@@ -13,10 +13,12 @@ from marlmerge.evaluation.estimate import (
     EVENT_SCORE,
     EstimateSettings,
     Estimator,
+    _stalled,
     fit_proposal,
     weighted_estimate,
 )
 from marlmerge.evaluation.registry import policy_from_spec
+from marlmerge.io.files import load
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.proposal import (
     N_STATS,
@@ -178,6 +180,15 @@ def test_estimate_resumes_bit_for_bit_and_refuses_another_request(tmp_path):
     again = Estimator(policy, "hold", cfg, settings, out).run()
     assert again["episodes_run"] == 30 and again["rate"] == first["rate"]
     assert again["ci95"] == first["ci95"] and again["proposal"] == first["proposal"]
+    # the estimate pools the rounds' episodes with the final stage's, each with its own weight
+    batches = [load(f, "batch") for f in sorted((out / "batches").glob("*.pt"))]
+    pooled = weighted_estimate(
+        np.concatenate([b["event"] for b in batches]),
+        np.concatenate([b["log_weight"] for b in batches]),
+    )
+    assert len(batches) == len(first["rounds"]) + 2
+    assert first["rate"] == pytest.approx(pooled["rate"], rel=1e-12)
+    assert first["events"] == pooled["events"] > 0
     other = EstimateSettings(episodes=60, batch=30, rounds=2, round_episodes=40, seed=5)
     with pytest.raises(ValueError, match="seed = 0, asked 5"):
         Estimator(policy, "hold", cfg, other, out).run()
@@ -201,8 +212,17 @@ def test_estimate_command_prints_the_summary_last(tmp_path, capsys):
 
 
 def test_cross_entropy_rounds_stop_when_the_level_stalls():
-    from marlmerge.evaluation.estimate import _stalled
-
     assert not _stalled([9.0, 8.0])
     assert not _stalled([9.0, 8.0, 7.5, 7.0])  # still falling
     assert _stalled([9.0, 8.0, 8.1, 7.99])  # two rounds without falling below 8.0 - 0.05
+
+
+def test_rounds_wait_for_the_lapse_fits_events(tmp_path):
+    """With lapses tilted, a stalled gap level does not end the rounds before the lapse fit has
+    seen its events: rare lapses, tiny rounds, no event, so every round runs."""
+    cfg = resolve_config("lapses_rare")
+    settings = EstimateSettings(episodes=20, batch=20, rounds=5, round_episodes=20, worlds=20)
+    report = Estimator(policy_from_spec("gap", cfg), "gap", cfg, settings, tmp_path).run()
+    levels = [r["level"] for r in report["rounds"]]
+    assert sum(r["events"] for r in report["rounds"]) < 5
+    assert len(levels) == 5 and any(_stalled(levels[:k]) for k in range(3, 5))  # went on

@@ -10,15 +10,17 @@ import pytest
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.presets import resolve_config
 from marlmerge.evaluation.estimate import (
-    LAPSE_GRID,
+    LAPSE_Q_MIN,
+    LAPSE_START_P,
     EstimateSettings,
     fit_proposal,
     initial_proposal,
+    lapse_grid,
 )
 from marlmerge.sim import layout as L
 from marlmerge.sim.core import TrafficCore
-from marlmerge.sim.lapses import lapse_uniform
-from marlmerge.sim.proposal import LAPSE_P_MAX, N_STATS, ST_LAPSE_N, ST_LAPSE_STEPS, Proposal
+from marlmerge.sim.lapses import MIN_CLOSING_MPS, lapse_class, lapse_uniform
+from marlmerge.sim.proposal import N_STATS, ST_LAPSE_N, ST_LAPSE_STEPS, Proposal
 
 LAPSING = ScenarioConfig().replace(**{"driver.lapse_rate_per_h": 600.0, "driver.lapse_s": 1.0})
 
@@ -83,7 +85,7 @@ def test_the_tilted_lapses_weigh_exactly():
     weight 1 exactly."""
     cfg = resolve_config("lapses")
     p = L.lapse_step_probability(cfg)
-    q = (0.05, 0.03)
+    q = (0.05, 0.03, 0.02, 0.01)
     core = TrafficCore(
         cfg, batch_size=300, seed=4, proposal=replace(Proposal.natural(cfg), lapse_p=q)
     )
@@ -97,7 +99,7 @@ def test_the_tilted_lapses_weigh_exactly():
         want += steps * no + lapses * (math.log(p / q_c) - no)
         assert steps.sum() > 0
     assert np.allclose(core.wf[:, L.WF_LAPSE_LOGW], want, rtol=1e-12, atol=1e-9)
-    begun = core.wf[:, L.WF_LAPSE_N : L.WF_LAPSE_N + 2].sum(axis=1)  # [B]
+    begun = core.wf[:, L.WF_LAPSE_N : L.WF_LAPSE_N + L.N_LAPSE_CLASSES].sum(axis=1)  # [B]
     assert begun.sum() > 5 and begun.max() == 1.0  # the first tilted lapse only
     w = np.exp(core.wf[:, L.WF_LAPSE_LOGW])
     assert abs(w.mean() - 1.0) < 4 * w.std(ddof=1) / math.sqrt(w.size)
@@ -110,16 +112,17 @@ def test_the_tilted_lapses_weigh_exactly():
 
 
 def test_lapse_proposals_refuse_and_fit():
-    with pytest.raises(ValueError, match="lapse_p must be 2 probabilities in"):
-        Proposal((5.0, 30.0), ((0.4, 0.3, 0.3),) * 2, lapse_p=(0.1, 0.9))
+    with pytest.raises(ValueError, match="lapse_p must be 4 probabilities in"):
+        Proposal((5.0, 30.0), ((0.4, 0.3, 0.3),) * 2, lapse_p=(0.1, 0.9, 0.1, 0.1))
     with pytest.raises(ValueError, match="never lapse"):
         TrafficCore(
             ScenarioConfig(), 1, seed=0, proposal=Proposal((5.0, 30.0), ((0.4, 0.3, 0.3),) * 2,
-                                                           lapse_p=(0.1,) * 2)
+                                                           lapse_p=(0.1,) * 4)
         )  # fmt: skip
     cfg = resolve_config("lapses")
     start = initial_proposal(cfg)
-    assert start.lapse_p is not None and min(start.lapse_p) > L.lapse_step_probability(cfg)
+    p = L.lapse_step_probability(cfg)
+    assert start.lapse_p == tuple(max(p, q) for q in LAPSE_START_P) and min(start.lapse_p) > p
     assert initial_proposal(ScenarioConfig()).lapse_p is None
     assert Proposal.from_dict(start.to_dict()) == start
     assert "lapse_p" not in Proposal.natural(ScenarioConfig()).to_dict()
@@ -135,22 +138,23 @@ def test_lapse_proposals_refuse_and_fit():
     }
     fitted, _ = fit_proposal(cfg, start, batch, EstimateSettings(smoothing=1.0))
     # alike events: the second moment is least where their likelihood is largest (q = 1/10);
-    # class 1: no step of it in the events, so the natural probability (the grid's first)
-    p = L.lapse_step_probability(cfg)
-    assert fitted.lapse_p == pytest.approx((0.1, p), rel=0.06)
+    # classes 1-3: no step of them in the events, so their grids' first (the floor)
+    floors = lapse_grid(p)[:, 0]
+    assert np.all(floors == max(p, LAPSE_Q_MIN))
+    assert fitted.lapse_p == pytest.approx((0.1, *floors[1:]), rel=0.06)
     few = {**batch, "event": np.arange(n) < 4}
     assert fit_proposal(cfg, start, few, EstimateSettings())[0].lapse_p == start.lapse_p
 
 
 def test_the_lapse_fit_minimises_the_estimates_second_moment():
-    """Events whose class-0 windows were 10 and 100 steps long, one lapse each, drawn under q =
+    """Events whose class-0 windows were 3 and 30 steps long, one lapse each, drawn under q =
     0.02: the fit is the grid point where sum_i w_i w_q,i is least (closed form below), and that
-    is well below the cross-entropy fit (2 lapses in 110 steps), whose long windows would weigh
-    ((1 - p)/(1 - q))^99 each."""
+    is well below the cross-entropy fit (2 lapses in 33 steps), whose long windows would weigh
+    ((1 - p)/(1 - q))^29 each."""
     cfg = resolve_config("lapses")
     p, q_own = L.lapse_step_probability(cfg), 0.02
-    start = replace(initial_proposal(cfg), lapse_p=(q_own, q_own))
-    steps = np.array([10.0, 100.0] * 10)
+    start = replace(initial_proposal(cfg), lapse_p=(q_own,) * L.N_LAPSE_CLASSES)
+    steps = np.array([3.0, 30.0] * 10)
     stats = np.zeros((steps.size, N_STATS))
     stats[:, ST_LAPSE_STEPS], stats[:, ST_LAPSE_N] = steps, 1.0
 
@@ -165,10 +169,10 @@ def test_the_lapse_fit_minimises_the_estimates_second_moment():
         "min_gap_m": np.zeros(steps.size),
     }
     fitted, _ = fit_proposal(cfg, start, batch, EstimateSettings(smoothing=1.0))
-    grid = np.geomspace(p, LAPSE_P_MAX, LAPSE_GRID)
+    grid = lapse_grid(p)[0]
     second = np.exp(log_ratio(q_own) + log_ratio(grid)).sum(axis=0)  # [G]
     assert fitted.lapse_p[0] == pytest.approx(grid[np.argmin(second)], rel=1e-12)
-    cross_entropy = 2.0 / 110.0
+    cross_entropy = 2.0 / 33.0
     at = np.exp(log_ratio(q_own) + log_ratio(np.array([fitted.lapse_p[0], cross_entropy])))
     assert at.sum(axis=0)[0] < 0.9 * at.sum(axis=0)[1]
 
@@ -188,3 +192,48 @@ def test_a_version_3_state_still_loads():
     v3["arrays"]["vf"] = v3["arrays"]["vf"][:, :-1]
     with pytest.raises(ValueError, match="array 'vf' has shape"):
         other.load_state_dict(v3)
+
+
+def test_a_version_4_state_still_loads():
+    """A state saved with two lapse classes (version 4) continues bit for bit, its per-class
+    counts kept as those of classes 0 and 1."""
+    core = TrafficCore(LAPSING, batch_size=3, seed=2)
+    _drive(core, 15)
+    saved = core.state_dict()
+    wf = saved["arrays"]["wf"]
+    wf[:, L.WF_LAPSE_STEPS : L.WF_LAPSE_STEPS + 2] = [[3.0, 4.0]]  # as if drawn by a proposal
+    wf[:, L.WF_LAPSE_N] = 1.0
+    steps, begun = L.WF_LAPSE_STEPS, L.WF_LAPSE_N
+    v4_wf = np.concatenate([wf[:, :steps], wf[:, steps : steps + 2], wf[:, begun : begun + 2]], 1)
+    assert v4_wf.shape[1] == L.WF_ROWS_V4
+    v4 = {**saved, "version": 4, "arrays": {**saved["arrays"], "wf": v4_wf}}
+    other = TrafficCore(LAPSING, batch_size=3, seed=9)
+    other.load_state_dict(v4)
+    assert np.array_equal(other.wf, wf)
+    core.load_state_dict(saved)
+    for a, b in zip(_drive(core, 20), _drive(other, 20), strict=True):
+        assert np.array_equal(a, b)
+    v4["arrays"]["wf"] = v4_wf[:, :-1]
+    with pytest.raises(ValueError, match="array 'wf' has shape"):
+        other.load_state_dict(v4)
+
+
+def test_lapse_classes_bin_the_reach_ratio():
+    """gap / (closing speed, at least 1.5 m/s, x the lapse's length): [0.5, 1) is class 0,
+    [1, 1.5) class 1, [1.5, 2.5) class 2, below 0.5 or [2.5, 5) class 3; farther out, or not
+    closing in, no class."""
+    cfg = resolve_config("lapses")  # 3 s lapses
+    core = TrafficCore(cfg, batch_size=1, seed=0)
+    p = L.pack_params(cfg)
+    vf = np.zeros_like(core.vf)
+    S = (vf, core.vi, core.wf, core.wi, core.lanes, core.sched)
+    s = 1
+    vf[0, L.VF_V, L.EGO] = 20.0
+    for closing, ratio, want in [
+        (4.0, 0.3, 3), (4.0, 0.7, 0), (4.0, 1.2, 1), (4.0, 2.0, 2), (4.0, 3.0, 3), (4.0, 6.0, -1),
+        (0.5, 0.7, 0), (0.5, 1.2, 1), (-0.1, 0.7, -1),
+    ]:  # fmt: skip
+        vf[0, L.VF_V, s] = 20.0 + closing
+        gap_m = ratio * max(closing, MIN_CLOSING_MPS) * 3.0
+        vf[0, L.VF_X, s] = vf[0, L.VF_X, L.EGO] - cfg.vehicle.length_m - gap_m
+        assert lapse_class(S, 0, p, s) == want, (closing, ratio)

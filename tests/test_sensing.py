@@ -131,7 +131,7 @@ def test_sensing_state_continues_bit_for_bit_from_a_checkpoint():
     core = TrafficCore(cfg, batch_size=3, seed=4)
     _drive(core, 40)
     saved = core.state_dict()
-    assert saved["version"] == 4 and saved["arrays"]["ring"].shape == (3 * 4, 16)
+    assert saved["version"] == 5 and saved["arrays"]["ring"].shape == (3 * 4, 16)
     expected = _drive(core, 60)
     other = TrafficCore(cfg, batch_size=3, seed=99)
     other.load_state_dict(saved)

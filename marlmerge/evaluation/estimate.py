@@ -15,10 +15,15 @@ the proposal to the elite's draws, each weighed by w (weighted maximum likelihoo
 profiles and gaps, moments for the Betas), smoothed. Attention lapses are fitted to the events
 alone, pooled over the rounds so far: the probabilities that minimise the estimate's second
 moment as those events measure it (`_fit_lapse`). The rounds stop when the elite is all events,
-when its danger level has not fallen for `STALL_ROUNDS` rounds (the family can get no closer),
-or after `rounds`. The final stage then runs fresh episodes under the last proposal, in
-batches, until the interval's half-width is at most `rel_ci` times the rate (after
-`min_events` events) or `episodes` are done.
+when its danger level has not fallen for `STALL_ROUNDS` rounds (the family can get no closer;
+with lapses tilted, not before the lapse fit has had its events), or after `rounds`. The
+final stage then runs fresh episodes under the last proposal, in batches, until the interval's
+half-width is at most `rel_ci` times the rate (after `min_events` events) or `episodes` are
+done. The estimate pools every episode, the rounds'
+included: each is weighed by the exact ratio of the proposal it was drawn under, a proposal
+fitted to the episodes before it only, so every term has the rate as its expectation and their
+mean stays unbiased (the pooled adaptive importance-sampling estimator); the rounds' episodes
+are paid for anyway.
 
 Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
 episodes used (fitting rounds included), the effective sample size of the event weights
@@ -75,10 +80,11 @@ MIN_TRUSTED_ESS = 30.0
 DEFAULT_REL_CI = 0.2
 PROFILE_FLOOR = 0.02
 """A fitted profile probability is at least this where the scenario draws the profile."""
-ESTIMATE_VERSION = 2
+ESTIMATE_VERSION = 3
 """How the batches are drawn (2: the first tilted lapse only, the lapse fit by second
-moment); a folder of another version is refused rather than resumed (1: before the field
-existed)."""
+moment; 3: four lapse classes, the rounds pooled into the estimate); a folder of another
+version is refused rather than resumed (1: before the field existed). Monte Carlo batches are
+natural draws in every version and stay valid."""
 STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
 """Settings that only say when to stop: a rerun may change them and keep the batches."""
 STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
@@ -86,10 +92,18 @@ MIN_LAPSE_EVENTS = 5
 """Events the rounds need (pooled) before they fit the lapse probabilities to them."""
 LAPSE_GRID = 48
 """Candidate probabilities per lapse class, log-spaced from p to `LAPSE_P_MAX`."""
-LAPSE_START_P = 0.02
-"""With attention lapses the fit starts from this per-step lapse probability for the driver
-behind the ego's gap (about one lapse while the ego crosses the merge zone): natural lapses are
-too rare for a first round to see any."""
+LAPSE_SWEEPS = 4
+"""Rounds of coordinate descent over the classes in the lapse fit."""
+LAPSE_START_P = (0.1, 0.04, 0.05, 0.01)
+"""With attention lapses the fit starts from these per-step lapse probabilities (by class,
+`marlmerge.sim.lapses.lapse_class`; at least the natural p) for the driver behind the ego's gap:
+natural lapses are too rare for a first round to see any. Classes 0-2 near where the fit took
+them on `envs/lapses.toml`; class 3, whose lapses seldom end in a collision, at the floor."""
+LAPSE_Q_MIN = 0.01
+"""The fit keeps every class's probability at least this (or the natural p, if higher): fitted
+to a few events, the second moment drives a class that none of them came from down to p, and a
+later collision from it then weighs about 1, tens of times the others (on two held-out
+scenarios one such collision carried half the estimate's variance)."""
 EVENT_SCORE = -1.0e6
 """The danger score of an event: below any gap an episode without one can have (m)."""
 
@@ -276,32 +290,41 @@ def _fit_lapse(
     Under q an event's weight would be w_q = w · exp(L(q) - L(q_own)), where L is the lapse part
     of its log ratio (`lapse_log_ratio`; q_own: the proposal it was drawn under, `lapse_q`), and
     the second moment E_q[w_q^2 1_event] = E_p[w_q 1_event] is estimated from the events by
-    sum w · w_q, searched on a grid. Unlike a cross-entropy fit (lapses per step), this weighs
-    what a high q costs in long windows: each step without a lapse multiplies the weight by
-    (1 - p) / (1 - q) > 1. The events alone, not the elite by gap: a lapse makes no gap smaller
-    until the ego is ahead of the lapsing driver."""
+    sum w · w_q, searched on a grid by coordinate descent (one class at a time, the others
+    held, `LAPSE_SWEEPS` rounds, from the natural p). Unlike a cross-entropy fit (lapses per
+    step), this weighs what a high q costs in long windows: each step without a lapse
+    multiplies the weight by (1 - p) / (1 - q) > 1. The events alone, not the elite by gap:
+    a lapse makes no gap smaller until the ego is ahead of the lapsing driver."""
     if current.lapse_p is None:
         return None
     if np.count_nonzero(events["event"]) < MIN_LAPSE_EVENTS:
         return current.lapse_p
     p = lapse_step_probability(cfg)
-    grid = np.geomspace(p, LAPSE_P_MAX, LAPSE_GRID)  # [G]
+    grid = lapse_grid(p)  # [C, G]
     stats, log_w = events["draw_stats"], events["log_weight"]
+    k = stats[:, ST_LAPSE_N : ST_LAPSE_N + N_LAPSE_CLASSES]  # [E, C]
+    n = stats[:, ST_LAPSE_STEPS : ST_LAPSE_STEPS + N_LAPSE_CLASSES]
     base = 2.0 * log_w - lapse_log_ratio(stats, p, events["lapse_q"])  # [E]
-    total = base.reshape(-1, *([1] * N_LAPSE_CLASSES))  # [E, 1, ...]
-    for c in range(N_LAPSE_CLASSES):  # + L_c(q_c) on axis c: [E, G, ..., G]
-        k, n = stats[:, ST_LAPSE_N + c, None], stats[:, ST_LAPSE_STEPS + c, None]
-        part = _lapse_log_terms(k, n, p, grid)  # [E, G]
-        shape = [-1] + [1] * N_LAPSE_CLASSES
-        shape[c + 1] = grid.size
-        total = total + part.reshape(shape)
-    peak = total.max(axis=0)
-    second = peak + np.log(np.exp(total - peak).sum(axis=0))  # log sum_i [G, ..., G]
-    best = np.unravel_index(int(np.argmin(second)), second.shape)
+    part = _lapse_log_terms(k[:, :, None], n[:, :, None], p, grid)  # [E, C, G]: L_c(q) per event
+    best = np.zeros(N_LAPSE_CLASSES, dtype=np.int64)  # grid index per class: at its floor
+    for _ in range(LAPSE_SWEEPS):  # coordinate descent: each class's best q given the others
+        for c in range(N_LAPSE_CLASSES):
+            others = part[:, np.arange(N_LAPSE_CLASSES) != c, :]
+            fixed = np.take_along_axis(others, np.delete(best, c)[None, :, None], axis=2)
+            total = (base + fixed[:, :, 0].sum(axis=1))[:, None] + part[:, c, :]  # [E, G]
+            peak = total.max(axis=0)
+            best[c] = int(np.argmin(peak + np.log(np.exp(total - peak).sum(axis=0))))
     return tuple(
-        float(alpha * grid[i] + (1.0 - alpha) * old)
-        for i, old in zip(best, current.lapse_p, strict=True)
+        float(alpha * grid[c, i] + (1.0 - alpha) * old)
+        for c, (i, old) in enumerate(zip(best, current.lapse_p, strict=True))
     )
+
+
+def lapse_grid(p: float) -> np.ndarray:
+    """The lapse probabilities the fit chooses from [N_LAPSE_CLASSES, LAPSE_GRID]: for every
+    class, log-spaced from `LAPSE_Q_MIN` (at least the natural p) to `LAPSE_P_MAX`."""
+    row = np.geomspace(min(max(p, LAPSE_Q_MIN), LAPSE_P_MAX), LAPSE_P_MAX, LAPSE_GRID)
+    return np.tile(row, (N_LAPSE_CLASSES, 1))
 
 
 def events_of(batch: dict[str, np.ndarray], proposal: Proposal) -> dict[str, np.ndarray]:
@@ -345,8 +368,7 @@ def initial_proposal(cfg: ScenarioConfig) -> Proposal:
     p = lapse_step_probability(cfg)
     if p <= 0.0:
         return natural
-    q = max(p, LAPSE_START_P)
-    return replace(natural, lapse_p=(q,) * N_LAPSE_CLASSES)
+    return replace(natural, lapse_p=tuple(max(p, q) for q in LAPSE_START_P))
 
 
 STALL_ROUNDS = 2
@@ -406,7 +428,8 @@ class Estimator:
             write_text(path, json.dumps(self.request, indent=1))
             return
         old = json.loads(path.read_text())
-        if old.get("version", 1) != ESTIMATE_VERSION:
+        # Monte Carlo draws naturally, as every version did: its batches stay valid
+        if self.settings.method == "is" and old.get("version", 1) != ESTIMATE_VERSION:
             raise ValueError(
                 f"{self.out} holds batches of estimate version {old.get('version', 1)}, drawn "
                 f"as this one ({ESTIMATE_VERSION}) no longer draws them; use another --out or "
@@ -453,14 +476,16 @@ class Estimator:
         self.episodes_run += n
         return _filled(data, n)
 
-    def fit(self) -> tuple[Proposal, list[dict[str, Any]]]:
-        """The cross-entropy rounds: the final proposal and what each round saw."""
+    def fit(self) -> tuple[Proposal, list[dict[str, Any]], list[dict[str, np.ndarray]]]:
+        """The cross-entropy rounds: the final proposal, what each round saw and its batch."""
         s = self.settings
         proposal = initial_proposal(self.cfg)
         rounds = []
+        batches: list[dict[str, np.ndarray]] = []
         seen: list[dict[str, np.ndarray]] = []  # the events of every round so far
         for r in range(s.rounds):
             data = self.batch((STAGE_CE, r), s.round_episodes, proposal)
+            batches.append(data)
             seen.append(events_of(data, proposal))
             pooled = {k: np.concatenate([e[k] for e in seen]) for k in seen[-1]}
             fitted, level = fit_proposal(self.cfg, proposal, data, s, events=pooled)
@@ -476,15 +501,24 @@ class Estimator:
             proposal = fitted
             if level <= EVENT_SCORE:  # the elite is all events: the proposal aims at the event
                 break
-            if _stalled([x["level"] for x in rounds]):
+            starved = proposal.lapse_p is not None and (
+                np.count_nonzero(pooled["event"]) < MIN_LAPSE_EVENTS
+            )  # the lapse fit has not run yet: the gap's level says nothing about lapses
+            if _stalled([x["level"] for x in rounds]) and not starved:
                 break
-        return proposal, rounds
+        return proposal, rounds, batches
 
-    def final(self, stage: int, proposal: Proposal | None) -> tuple[dict[str, Any], int]:
-        """Batches until precise enough (or the episodes asked): the estimate and episodes."""
+    def final(
+        self,
+        stage: int,
+        proposal: Proposal | None,
+        rounds: list[dict[str, np.ndarray]] | None = None,
+    ) -> tuple[dict[str, Any], int]:
+        """Batches until precise enough (or the episodes asked): the estimate, pooled with the
+        `rounds`' episodes, and the final stage's episodes."""
         s = self.settings
         target = s.episodes if s.episodes is not None else s.max_episodes
-        parts: list[dict[str, np.ndarray]] = []
+        parts: list[dict[str, np.ndarray]] = list(rounds or [])
         done, i = 0, 0
         est: dict[str, Any] = {}
         while done < target:
@@ -505,8 +539,8 @@ class Estimator:
         rounds: list[dict[str, Any]] = []
         proposal = None
         if s.method == "is":
-            proposal, rounds = self.fit()
-            est, final_n = self.final(STAGE_FINAL, proposal)
+            proposal, rounds, batches = self.fit()
+            est, final_n = self.final(STAGE_FINAL, proposal, batches)
         else:
             est, final_n = self.final(STAGE_MC, None)
         fitting_n = sum(r["episodes"] for r in rounds)

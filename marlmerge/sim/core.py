@@ -47,9 +47,9 @@ PARALLEL_MIN_WORLDS = 64
 """From this many worlds on, `rollout` runs worlds in parallel threads (same results)."""
 WARMUP_CHUNK_STEPS = 10
 """Warm-up runs in calls of this many steps (each call reserves slots for its arrivals)."""
-STATE_DICT_VERSION = 4
-"""2: the sensor's arrays and the `wi` rows of sensing and the safety filter; version-1 states
-(no sensing) still load."""
+STATE_DICT_VERSION = 5
+"""2: the sensor's arrays and the `wi` rows of sensing and the safety filter; 3: ramp flow; 4:
+attention lapses; 5: four lapse classes. Older states still load."""
 _ARRAYS = ("vf", "vi", "wf", "wi", "lanes", "sched", "ring", "noise")
 _ARRAYS_V1 = _ARRAYS[:6]
 _NO_AGENTS = np.zeros((1 << 16, 0), dtype=bool)
@@ -762,7 +762,7 @@ class TrafficCore:
     def load_state_dict(self, saved: dict[str, Any]) -> None:
         """Restore a `state_dict` of a core with the same config and batch size."""
         version = saved.get("version")
-        if version not in (1, 2, 3, STATE_DICT_VERSION):
+        if version not in (1, 2, 3, 4, STATE_DICT_VERSION):
             raise ValueError(
                 f"core state version {version!r} is not {STATE_DICT_VERSION} (saved by another "
                 "version of marlmerge)"
@@ -781,6 +781,8 @@ class TrafficCore:
             arrays = _upgrade_v2(arrays)
         if version in (1, 2, 3):
             arrays = _upgrade_v3(arrays)
+        elif version == 4:
+            arrays = _upgrade_v4(arrays)
         for name in _ARRAYS:
             a = np.asarray(arrays[name])
             if a.ndim != getattr(self, name).ndim:
@@ -875,6 +877,23 @@ def _upgrade_v3(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
         ("wf", L.WF_ROWS, L.WF_ROWS_V3),
         ("wi", L.WI_ROWS, L.WI_ROWS_V3),
     )
+
+
+def _upgrade_v4(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The arrays of a version-4 state (two lapse classes): its per-class lapse counts kept as
+    those of classes 0 and 1, the new classes' zero (the counts only weigh draws under a
+    proposal; the draws themselves do not depend on the classes)."""
+    out = {name: np.asarray(a) for name, a in arrays.items()}
+    wf = out["wf"]
+    if wf.ndim != 2 or wf.shape[1] != L.WF_ROWS_V4:
+        raise ValueError(f"core state: array 'wf' has shape {wf.shape}")
+    new = np.zeros((wf.shape[0], L.WF_ROWS), dtype=wf.dtype)
+    new[:, : L.WF_LAPSE_STEPS] = wf[:, : L.WF_LAPSE_STEPS]
+    old_n = L.WF_LAPSE_STEPS + 2  # the version-4 lapse counts: [steps 0, steps 1, n 0, n 1]
+    new[:, L.WF_LAPSE_STEPS : L.WF_LAPSE_STEPS + 2] = wf[:, L.WF_LAPSE_STEPS : old_n]
+    new[:, L.WF_LAPSE_N : L.WF_LAPSE_N + 2] = wf[:, old_n : old_n + 2]
+    out["wf"] = new
+    return out
 
 
 def _zero_rows(arrays: dict[str, Any], *grown: tuple[str, int, int]) -> dict[str, np.ndarray]:

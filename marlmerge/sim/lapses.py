@@ -8,9 +8,9 @@ so a world with lapses off draws nothing and its numbers are those of a core wit
 
 Importance sampling (`marlmerge.sim.proposal`): while the ego runs in the merge zone, the
 driver behind its gap (`WI_BACK`) begins a lapse with the proposal's probability q_c of its
-class c instead of p (`P_LAPSE_Q + c`; `lapse_class`: whether such a lapse could close its gap
-to the ego within the lapse, or within a few; lapses that could not are drawn naturally and
-collisions come from the others), until one such lapse has begun since the world's reset (the
+class c instead of p (`P_LAPSE_Q + c`; `lapse_class`: how soon such a lapse could close its gap
+to the ego; lapses that could not are drawn naturally and collisions come from the others),
+until one such lapse has begun since the world's reset (the
 estimate runs one ego per world): later draws are natural, so a collision is not paid for with
 a second, needless lapse. The world keeps the exact log p/q_c of each tilted draw
 (`WF_LAPSE_LOGW`: log p/q_c for a lapse begun, log (1-p)/(1-q_c) for none; a ratio that
@@ -91,25 +91,36 @@ MIN_CLOSING_MPS = 1.5
 """A driver closing in on the ego more slowly than this reaches as far as one this fast would:
 the ego may slow down to join while the lapse lasts (without this floor, about 4 % of the
 collisions came from lapses begun out of reach, 7-13 m behind and closing at 0.5-1.2 m/s)."""
-REACH_LAPSES = 3.0
-"""Class 1 reaches this many lapse lengths ahead (`lapse_class`)."""
+CLASS_EDGES = (0.5, 1.0, 1.5, 2.5, 5.0)
+"""Bounds on reach ratios (gap / reach, `lapse_class`): class 0 from the first to the second,
+1 to the third, 2 to the fourth; class 3 below the first or from the fourth to the fifth.
+
+Measured with gap acceptance on `lapses` at ten times its lapse rate (the first such lapse of
+466,186 episodes, 841 of them ending in the ego's collision with the lapsing driver), the share
+of lapses that end in a collision by reach ratio: 0.2 % below 0.5 (the ego does not join in
+front of so close a driver), 44 % in [0.5, 1), 9 % in [1, 1.5), 2.3 % in [1.5, 2.5), 0.2 % in
+[2.5, 5), under 0.01 % beyond. Classes with alike collision shares let the proposal give each
+its own lapse probability."""
 
 
 @kernel(inline=True)
 def lapse_class(S: tuple, b: int, p: np.ndarray, s: int) -> int:
     """How soon a lapse of the driver in slot `s`, beginning now, could close its bumper gap to
-    the ego (projected onto the road) at today's speeds (at least `MIN_CLOSING_MPS`): 0 within
-    the lapse's length, 1 within `REACH_LAPSES` lapse lengths, -1 later or never (not closing
-    in: not tilted)."""
+    the ego (projected onto the road) at today's speeds: the reach ratio gap / reach, reach =
+    the closing speed (at least `MIN_CLOSING_MPS`) times the lapse's length, binned by
+    `CLASS_EDGES` (-1: not closing in, or out of reach: not tilted)."""
     vf, vi, wf, wi, lanes, sched = S
     closing_mps = vf[b, VF_V, s] - vf[b, VF_V, EGO]
     if closing_mps <= 0.0:
         return -1
     reach_m = max(closing_mps, MIN_CLOSING_MPS) * p[P_LAPSE_STEPS] * p[P_DT]
-    gap_m = vf[b, VF_X, EGO] - p[P_LEN] - vf[b, VF_X, s]
-    if gap_m < reach_m:
-        return 0
-    return 1 if gap_m < REACH_LAPSES * reach_m else -1
+    ratio = (vf[b, VF_X, EGO] - p[P_LEN] - vf[b, VF_X, s]) / reach_m
+    if ratio < CLASS_EDGES[0]:
+        return 3
+    for c in range(3):
+        if ratio < CLASS_EDGES[c + 1]:
+            return c
+    return 3 if ratio < CLASS_EDGES[4] else -1
 
 
 @kernel(inline=True)

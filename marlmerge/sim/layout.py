@@ -112,12 +112,14 @@ that command says join now."""
     WF_RAMP_WAIT_SUM,
     WF_LAPSE_LOGW,
 ) = range(18)
-N_LAPSE_CLASSES = 2
+N_LAPSE_CLASSES = 4
 """Tilted lapse draws by class c (`WF_LAPSE_STEPS + c`, `WF_LAPSE_N + c`, `P_LAPSE_Q + c`): how
 soon a lapse beginning now could close the driver's gap to the ego (`marlmerge.sim.lapses`)."""
 WF_LAPSE_STEPS = WF_LAPSE_LOGW + 1
 WF_LAPSE_N = WF_LAPSE_STEPS + N_LAPSE_CLASSES
 WF_ROWS = WF_LAPSE_N + N_LAPSE_CLASSES
+WF_ROWS_V4 = WF_LAPSE_STEPS + 2 * 2
+"""`wf` rows of a version-4 core state (two lapse classes)."""
 WF_ROWS_V3 = 17
 """`wf` rows of a version-3 core state (before attention lapses)."""
 WF_ROWS_V2 = 15
@@ -323,6 +325,8 @@ _PARAMS = (
     "lapse_p",
     "lapse_q",
     "lapse_q_1",
+    "lapse_q_2",
+    "lapse_q_3",
     "lapse_steps",
 )
 (
@@ -415,6 +419,8 @@ _PARAMS = (
     P_LAPSE_P,
     P_LAPSE_Q,
     P_LAPSE_Q_1,
+    P_LAPSE_Q_2,
+    P_LAPSE_Q_3,
     P_LAPSE_STEPS,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
@@ -540,5 +546,7 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "lapse_p": p_lapse,
         "lapse_q": p_lapse,  # the proposal's per class (`marlmerge.sim.lapses`): natural here
         "lapse_q_1": p_lapse,
+        "lapse_q_2": p_lapse,
+        "lapse_q_3": p_lapse,
         "lapse_steps": float(max(round(cfg.driver.lapse_s / cfg.sim.dt_s), 1)),
     }

@@ -78,8 +78,8 @@ class Proposal:
     """(a, b) of each Beta draw in `BETA_KEYS` order; (1, 1) is the natural uniform."""
     lapse_p: tuple[float, ...] | None = None
     """Per-step probabilities that the driver behind the ego's gap begins an attention lapse
-    while the ego runs in the merge zone, one per `lapse_class` (a lapse could close its gap to
-    the ego within the lapse, or within three); None: the scenario's own."""
+    while the ego runs in the merge zone, one per `lapse_class` (by how soon a lapse could
+    close its gap to the ego); None: the scenario's own."""
 
     def __post_init__(self) -> None:
         t0, t1 = self.window_s
