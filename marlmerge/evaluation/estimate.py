@@ -19,11 +19,10 @@ when its danger level has not fallen for `STALL_ROUNDS` rounds (the family can g
 with lapses tilted, not before the lapse fit has had its events), or after `rounds`. The
 final stage then runs fresh episodes under the last proposal, in batches, until the interval's
 half-width is at most `rel_ci` times the rate (after `min_events` events) or `episodes` are
-done. The estimate pools every episode, the rounds'
-included: each is weighed by the exact ratio of the proposal it was drawn under, a proposal
-fitted to the episodes before it only, so every term has the rate as its expectation and their
-mean stays unbiased (the pooled adaptive importance-sampling estimator); the rounds' episodes
-are paid for anyway.
+done. The estimate pools every episode, the rounds' included: each is weighed by the exact
+ratio of the proposal it was drawn under, a proposal fitted to the episodes before it only, so
+every term has the rate as its expectation and their mean stays unbiased (the pooled adaptive
+importance-sampling estimator); the rounds' episodes are paid for anyway.
 
 Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
 episodes used (fitting rounds included), the effective sample size of the event weights
@@ -91,7 +90,7 @@ STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
 MIN_LAPSE_EVENTS = 5
 """Events the rounds need (pooled) before they fit the lapse probabilities to them."""
 LAPSE_GRID = 48
-"""Candidate probabilities per lapse class, log-spaced from p to `LAPSE_P_MAX`."""
+"""Candidate probabilities per lapse class (`lapse_grid`)."""
 LAPSE_SWEEPS = 4
 """Rounds of coordinate descent over the classes in the lapse fit."""
 LAPSE_START_P = (0.1, 0.04, 0.05, 0.01)
@@ -290,41 +289,44 @@ def _fit_lapse(
     Under q an event's weight would be w_q = w · exp(L(q) - L(q_own)), where L is the lapse part
     of its log ratio (`lapse_log_ratio`; q_own: the proposal it was drawn under, `lapse_q`), and
     the second moment E_q[w_q^2 1_event] = E_p[w_q 1_event] is estimated from the events by
-    sum w · w_q, searched on a grid by coordinate descent (one class at a time, the others
-    held, `LAPSE_SWEEPS` rounds, from the natural p). Unlike a cross-entropy fit (lapses per
-    step), this weighs what a high q costs in long windows: each step without a lapse
-    multiplies the weight by (1 - p) / (1 - q) > 1. The events alone, not the elite by gap:
-    a lapse makes no gap smaller until the ego is ahead of the lapsing driver."""
+    sum w · w_q, searched on `lapse_grid` by coordinate descent (one class at a time, the
+    others held, `LAPSE_SWEEPS` rounds, from the grid's lowest point). Unlike a cross-entropy
+    fit (lapses per step), this weighs what a high q costs in long windows: each step without
+    a lapse multiplies the weight by (1 - p) / (1 - q) > 1. The events alone, not the elite by
+    gap: a lapse makes no gap smaller until the ego is ahead of the lapsing driver."""
     if current.lapse_p is None:
         return None
-    if np.count_nonzero(events["event"]) < MIN_LAPSE_EVENTS:
+    if _too_few_for_lapse_fit(events):
         return current.lapse_p
     p = lapse_step_probability(cfg)
-    grid = lapse_grid(p)  # [C, G]
+    grid = lapse_grid(p)  # [G]
     stats, log_w = events["draw_stats"], events["log_weight"]
     k = stats[:, ST_LAPSE_N : ST_LAPSE_N + N_LAPSE_CLASSES]  # [E, C]
     n = stats[:, ST_LAPSE_STEPS : ST_LAPSE_STEPS + N_LAPSE_CLASSES]
     base = 2.0 * log_w - lapse_log_ratio(stats, p, events["lapse_q"])  # [E]
     part = _lapse_log_terms(k[:, :, None], n[:, :, None], p, grid)  # [E, C, G]: L_c(q) per event
-    best = np.zeros(N_LAPSE_CLASSES, dtype=np.int64)  # grid index per class: at its floor
+    classes = np.arange(N_LAPSE_CLASSES)
+    best = np.zeros(N_LAPSE_CLASSES, dtype=np.int64)  # grid index per class: the lowest
     for _ in range(LAPSE_SWEEPS):  # coordinate descent: each class's best q given the others
         for c in range(N_LAPSE_CLASSES):
-            others = part[:, np.arange(N_LAPSE_CLASSES) != c, :]
-            fixed = np.take_along_axis(others, np.delete(best, c)[None, :, None], axis=2)
-            total = (base + fixed[:, :, 0].sum(axis=1))[:, None] + part[:, c, :]  # [E, G]
+            held = np.delete(part[:, classes, best], c, axis=1).sum(axis=1)  # [E]
+            total = (base + held)[:, None] + part[:, c, :]  # [E, G]
             peak = total.max(axis=0)
             best[c] = int(np.argmin(peak + np.log(np.exp(total - peak).sum(axis=0))))
     return tuple(
-        float(alpha * grid[c, i] + (1.0 - alpha) * old)
-        for c, (i, old) in enumerate(zip(best, current.lapse_p, strict=True))
+        float(alpha * grid[i] + (1.0 - alpha) * old)
+        for i, old in zip(best, current.lapse_p, strict=True)
     )
 
 
+def _too_few_for_lapse_fit(events: dict[str, np.ndarray]) -> bool:
+    return np.count_nonzero(events["event"]) < MIN_LAPSE_EVENTS
+
+
 def lapse_grid(p: float) -> np.ndarray:
-    """The lapse probabilities the fit chooses from [N_LAPSE_CLASSES, LAPSE_GRID]: for every
-    class, log-spaced from `LAPSE_Q_MIN` (at least the natural p) to `LAPSE_P_MAX`."""
-    row = np.geomspace(min(max(p, LAPSE_Q_MIN), LAPSE_P_MAX), LAPSE_P_MAX, LAPSE_GRID)
-    return np.tile(row, (N_LAPSE_CLASSES, 1))
+    """The lapse probabilities the fit chooses from, for every class [LAPSE_GRID]: log-spaced
+    from `LAPSE_Q_MIN` (at least the natural p) to `LAPSE_P_MAX`."""
+    return np.geomspace(min(max(p, LAPSE_Q_MIN), LAPSE_P_MAX), LAPSE_P_MAX, LAPSE_GRID)
 
 
 def events_of(batch: dict[str, np.ndarray], proposal: Proposal) -> dict[str, np.ndarray]:
@@ -501,9 +503,8 @@ class Estimator:
             proposal = fitted
             if level <= EVENT_SCORE:  # the elite is all events: the proposal aims at the event
                 break
-            starved = proposal.lapse_p is not None and (
-                np.count_nonzero(pooled["event"]) < MIN_LAPSE_EVENTS
-            )  # the lapse fit has not run yet: the gap's level says nothing about lapses
+            # the lapse fit has not run yet: the gap's level says nothing about lapses
+            starved = proposal.lapse_p is not None and _too_few_for_lapse_fit(pooled)
             if _stalled([x["level"] for x in rounds]) and not starved:
                 break
         return proposal, rounds, batches
