@@ -66,11 +66,16 @@ round that added the left-lane watch to the shield (`@shield-left`)."""
 HELDOUT6_SEED = 20261205
 """The seed the sixth held-out set (`envs/heldout6_*`) was drawn with: committed before the
 round that looked at the collisions behind `@shield-left`."""
+HELDOUT7_SEED = 20261206
+"""The seed the seventh held-out set (`envs/heldout7_*`) was drawn with: committed before
+anyone ran a policy on it, for the round that next changes the drivers' defaults or tunes a
+recipe."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
     "heldout5": HELDOUT5_SEED,
     "heldout6": HELDOUT6_SEED,
+    "heldout7": HELDOUT7_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
@@ -121,7 +126,13 @@ def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None =
     """Write a held-out set drawn from `SPACE` (`HELDOUT_SETS`), `PREFIX_01.toml` ... into
     `folder`; `seed` defaults to the set's own."""
     seed = HELDOUT_SETS[prefix] if seed is None else seed
-    ordinals = {"heldout3": "third", "heldout4": "fourth", "heldout5": "fifth", "heldout6": "sixth"}
+    ordinals = {
+        "heldout3": "third",
+        "heldout4": "fourth",
+        "heldout5": "fifth",
+        "heldout6": "sixth",
+        "heldout7": "seventh",
+    }
     ordinal = ordinals.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
     for i, point in enumerate(heldout_points(n, seed), start=1):
