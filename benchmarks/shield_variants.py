@@ -5,9 +5,10 @@ options (`@shield-left` turns them all on): `watch_left`, which also judges the 
 predicted to move right into the ego's gap (an extended observation only), `cap_in_lane`, which
 caps the ego's command at IDM's behind its leader once it has joined, and `keep_rolling`, which
 keeps a nearly stopped ego rolling towards gap acceptance's wait point. This script runs a
-policy behind each variant on the same roads as the grid (`marlmerge.evaluation.grid.road_seeds`,
-root seed 2,000,000) and prints one JSON line per variant: episodes, collisions, success,
-truncations and the mean merge time of the successful episodes.
+policy behind each variant (and, as `bare`, without a shield) on the same roads as the grid
+(`marlmerge.evaluation.grid.road_seeds`, root seed 2,000,000) and prints one JSON line per
+variant: episodes, collisions, success, truncations and the mean merge time of the successful
+episodes.
 
     python benchmarks/shield_variants.py --policy "quadq:runs/hardened_s?" \\
         --condition "heldout_*" --condition "heldout4_*" [--sees-ramp] [--episodes 400]
@@ -35,7 +36,8 @@ from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 
 GRID_SEED = 2_000_000
-VARIANTS = {  # name: (watch_left, cap_in_lane, keep_rolling)
+VARIANTS: dict[str, tuple[bool, bool, bool] | None] = {  # (watch_left, cap_in_lane, keep_rolling)
+    "bare": None,  # no shield: the policy alone
     "shield": (False, False, False),
     "shield+cap": (False, True, False),
     "shield+left": (True, False, False),
@@ -68,7 +70,8 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=400)
     ap.add_argument("--sees-ramp", action="store_true")
     ap.add_argument("--observation", default=None, help="the ego's layout, for a rule")
-    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated")
+    ap.add_argument("--variants", default=",".join(v for v in VARIANTS if v != "bare"),
+                    help="comma-separated; `bare` is the policy without a shield")  # fmt: skip
     ap.add_argument("--left-margin", type=float, default=1.0, help="GapShield.left_margin_mps2")
     args = ap.parse_args()
     spec = parse_policy(args.policy)
@@ -90,7 +93,12 @@ def main() -> None:
             scen = scenario_for(spec, run, base)
             seeds = road_seeds(GRID_SEED, scen.name, args.episodes)
             for name in names:
-                policy = shielded(spec, run, scen, *VARIANTS[name], args.left_margin)
+                opts = VARIANTS[name]
+                policy = (
+                    make_policy(spec, run, scen)
+                    if opts is None
+                    else shielded(spec, run, scen, *opts, args.left_margin)
+                )
                 rec, _ = rollout_first_egos(
                     policy, scen, args.episodes, 0, args.episodes, road_seeds=seeds
                 )
