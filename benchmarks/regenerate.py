@@ -15,13 +15,14 @@ in order:
 - **Side by side.** `--jobs 2` runs steps whose needs are done two at a time while their
   `cores` fit (two one-thread trainings; a grid alone), as the docs' times were measured.
 - **Logged.** Each step's output goes to `STATE/logs/NAME.log`, its wall time to
-  `STATE/times.jsonl`. A failed step stops the round (the running steps finish) and names its log.
+  `STATE/times.jsonl`. A failed step is named with its log; what needs it is not run, the rest
+  goes on (a round of many hours does not stop at one missing extra, such as libsumo).
 
     python benchmarks/regenerate.py --dry-run                 # the plan and its time
     python benchmarks/regenerate.py --jobs 2                  # everything (hours)
     python benchmarks/regenerate.py --only "paper_*" --only report_grid   # these and their needs
 
-The last line printed is JSON: `run`, `skipped`, `failed` (step names), `wall_s`.
+The last line printed is JSON: `run`, `skipped`, `failed`, `not_run` (step names), `wall_s`.
 """
 
 from __future__ import annotations
@@ -231,20 +232,21 @@ def plan_minutes(steps: list[Step], jobs: int) -> float:
 
 
 def run_round(rnd: Round, steps: list[Step], jobs: int, force: bool) -> dict:
-    """Run the steps not done yet, up to `jobs` cores at a time; stop starting new ones after
-    a failure. Returns the summary the script prints."""
+    """Run the steps not done yet, up to `jobs` cores at a time. A failed step leaves the
+    steps that need it (directly or not) unrun and the others going. Returns the summary the
+    script prints."""
     todo = [s for s in steps if force or not rnd.done(s)]
     skipped = [s.name for s in steps if s not in todo]
     finished = set(skipped)
     running: dict[str, tuple[Step, subprocess.Popen, float]] = {}
     ran, failed, t0 = [], [], time.perf_counter()
     while todo or running:
-        for step in _ready(todo, finished, running, jobs) if not failed else []:
+        for step in _ready(todo, finished, running, jobs):
             print(f"[{time.strftime('%H:%M:%S')}] {step.name} ({step.minutes:g} min)", flush=True)
             running[step.name] = (step, rnd.start(step), time.perf_counter())
             todo.remove(step)
         if not running:
-            break  # a failure left the rest waiting, or needs outside the selection are not done
+            break  # what is left needs a step that failed
         time.sleep(0.2)
         for name, (step, proc, t_start) in list(running.items()):
             if proc.poll() is None:
