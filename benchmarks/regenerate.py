@@ -14,6 +14,9 @@ in order:
   deleted, so a training never meets a folder from an earlier round.
 - **Side by side.** `--jobs 2` runs steps whose needs are done two at a time while their
   `cores` fit (two one-thread trainings; a grid alone), as the docs' times were measured.
+- **One machine.** A learned run's bits depend on the CPU that trains it (the kernels torch
+  compiles for it), so a round records its machine in `STATE/machine.json` and refuses to go on
+  elsewhere, naming what differs.
 - **Logged.** Each step's output goes to `STATE/logs/NAME.log`, its wall time to
   `STATE/times.jsonl`. A failed step is named with its log; what needs it is not run, the rest
   goes on (a round of many hours does not stop at one missing extra, such as libsumo).
@@ -31,6 +34,8 @@ import argparse
 import fnmatch
 import hashlib
 import json
+import os
+import platform
 import re
 import shlex
 import shutil
@@ -181,11 +186,57 @@ def check_step(step: Step, root: Path = ROOT) -> list[str]:
     return [f"step {step.name!r}: {p}" for p in problems]
 
 
+def machine() -> dict[str, str]:
+    """What a learned run's bits depend on besides the code: the CPU and the kernels torch
+    picks for it (its vector width, MKL's code path), and the versions."""
+    import numba
+    import torch
+    from torch._inductor.cpu_vec_isa import pick_vec_isa
+
+    model = next(
+        (line.split(":", 1)[1].strip() for line in _cpuinfo() if line.startswith("model name")),
+        platform.processor(),
+    )
+    return {
+        "cpu": model, "cores": str(len(os.sched_getaffinity(0))), "arch": platform.machine(),
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "compiled_isa": str(pick_vec_isa()), "torch": torch.__version__,
+        "numba": numba.__version__, "python": platform.python_version(),
+    }  # fmt: skip
+
+
+def _cpuinfo() -> list[str]:
+    try:
+        return Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:  # pragma: no cover - not Linux
+        return []
+
+
 class Round:
-    """The state of one regeneration round: done markers, logs and times under `state`."""
+    """The state of one regeneration round: done markers, logs and times under `state`, and
+    the machine it runs on (`machine.json`)."""
 
     def __init__(self, root: Path, state: Path) -> None:
         self.root, self.state = root, state
+
+    def check_machine(self, here: dict[str, str]) -> None:
+        """Record the machine a new round runs on; refuse to continue one started on another:
+        learned runs differ in their bits from machine to machine, and a round's results must
+        come from one."""
+        path = self.state / "machine.json"
+        if not path.exists():
+            self.state.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(here, indent=1) + "\n")
+            return
+        then = json.loads(path.read_text())
+        diff = {k: (then.get(k), here.get(k)) for k in then.keys() | here.keys()}
+        diff = {k: v for k, v in diff.items() if v[0] != v[1]}
+        if diff:
+            shown = "; ".join(f"{k}: {a!r} then, {b!r} here" for k, (a, b) in sorted(diff.items()))
+            raise SystemExit(
+                f"{self.state} is a round started on another machine ({shown}): learned runs "
+                "differ by machine, so a round runs on one; start a new one with --state"
+            )
 
     def done(self, step: Step) -> bool:
         """Finished in this round with the same command, its outputs still there."""
@@ -318,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     print_plan(rnd, steps, args.jobs)
     if args.dry_run:
         return 0
+    rnd.check_machine(machine())
     summary = run_round(rnd, steps, args.jobs, args.force)
     print(json.dumps(summary))
     return 1 if summary["failed"] or summary["not_run"] else 0

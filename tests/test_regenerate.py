@@ -187,3 +187,13 @@ def test_two_jobs_start_one_core_steps_together_and_a_wide_step_alone():
     # what builds on finished steps goes before the next step that needs nothing
     assert [s.name for s in rg._ready(steps[1:], {"a"}, {}, 2)] == ["d", "b"]
     assert rg.plan_minutes(steps, 2) == pytest.approx(3 / 2 + 1)
+
+
+def test_a_round_stays_on_the_machine_it_started_on(tmp_path):
+    rnd = rg.Round(tmp_path, tmp_path / "state")
+    here = {"cpu": "x", "compiled_isa": "avx512", "torch": "2.13.0+cpu"}
+    rnd.check_machine(here)
+    rnd.check_machine(dict(here))  # the same machine goes on
+    with pytest.raises(SystemExit, match="compiled_isa: 'avx512' then, 'avx2' here"):
+        rnd.check_machine({**here, "compiled_isa": "avx2"})
+    assert set(rg.machine()) >= {"cpu", "compiled_isa", "torch_cpu_capability", "torch"}
