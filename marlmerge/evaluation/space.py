@@ -70,12 +70,17 @@ HELDOUT7_SEED = 20261206
 """The seed the seventh held-out set (`envs/heldout7_*`) was drawn with: committed before
 anyone ran a policy on it, for the round that next changes the drivers' defaults or tunes a
 recipe."""
+HELDOUT8_SEED = 20261207
+"""The seed the eighth held-out set (`envs/heldout8_*`) was drawn with: committed before
+anyone ran a policy on it, for the round after the seventh set's check (the drivers' new
+default and the recipes tuned on it)."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
     "heldout5": HELDOUT5_SEED,
     "heldout6": HELDOUT6_SEED,
     "heldout7": HELDOUT7_SEED,
+    "heldout8": HELDOUT8_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
@@ -132,6 +137,7 @@ def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None =
         "heldout5": "fifth",
         "heldout6": "sixth",
         "heldout7": "seventh",
+        "heldout8": "eighth",
     }
     ordinal = ordinals.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
