@@ -45,7 +45,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from marlmerge.config import read_toml
+from marlmerge.config import from_dict, read_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "docs" / "regenerate.toml"
@@ -73,29 +73,25 @@ class Step:
 
 
 def _step(i: int, raw: dict) -> Step:
-    """Step number `i` of the manifest, its keys checked."""
+    """Step number `i` of the manifest: every key present, typed by the project's strict
+    config loading (`from_dict`), its values checked."""
     where = f"step {i + 1} ({raw.get('name', '?')!r})"
     unknown, missing = set(raw) - STEP_KEYS, STEP_KEYS - set(raw)
     if unknown or missing:
         raise ValueError(f"{where}: unknown keys {sorted(unknown)}, missing {sorted(missing)}")
-    if not isinstance(raw["name"], str) or not NAME.fullmatch(raw["name"]):
-        raise ValueError(f"{where}: name must match [a-z0-9_]+, got {raw['name']!r}")
-    if raw["cores"] not in (1, 2):
-        raise ValueError(f"{where}: cores must be 1 or 2, got {raw['cores']!r}")
-    if not isinstance(raw["minutes"], int | float) or raw["minutes"] <= 0:
-        raise ValueError(f"{where}: minutes must be a positive number, got {raw['minutes']!r}")
-    if not isinstance(raw["run"], str) or not raw["run"].strip():
-        raise ValueError(f"{where}: run must be a command, got {raw['run']!r}")
-    for key in ("needs", "fresh", "outputs", "reports"):
-        if not isinstance(raw[key], list) or not all(isinstance(v, str) for v in raw[key]):
-            raise ValueError(f"{where}: {key} must be a list of strings, got {raw[key]!r}")
-    for path in raw["fresh"]:
+    step = from_dict(Step, raw, _prefix=f"{where}: ")
+    if not NAME.fullmatch(step.name):
+        raise ValueError(f"{where}: name must match [a-z0-9_]+, got {step.name!r}")
+    if step.cores not in (1, 2):
+        raise ValueError(f"{where}: cores must be 1 or 2, got {step.cores!r}")
+    if step.minutes <= 0:
+        raise ValueError(f"{where}: minutes must be a positive number, got {step.minutes!r}")
+    if not step.run.strip():
+        raise ValueError(f"{where}: run must be a command, got {step.run!r}")
+    for path in step.fresh:
         if not path.startswith("runs/") or ".." in Path(path).parts or path.rstrip("/") == "runs":
             raise ValueError(f"{where}: fresh {path!r} is not a folder under runs/")
-    return Step(
-        raw["name"], raw["run"], tuple(raw["needs"]), tuple(raw["fresh"]),
-        tuple(raw["outputs"]), raw["cores"], float(raw["minutes"]), tuple(raw["reports"]),
-    )  # fmt: skip
+    return step
 
 
 def load_manifest(path: Path = MANIFEST) -> list[Step]:
@@ -256,11 +252,11 @@ class Round:
                 target.unlink()
             elif target.exists():
                 shutil.rmtree(target)
-        log = open(self.state / "logs" / f"{step.name}.log", "w")  # noqa: SIM115 - the child owns it
-        return subprocess.Popen(
-            ["bash", "-c", "set -euo pipefail\n" + step.run],
-            cwd=self.root, stdout=log, stderr=subprocess.STDOUT,
-        )  # fmt: skip
+        with open(self.state / "logs" / f"{step.name}.log", "w") as log:  # the child keeps a copy
+            return subprocess.Popen(
+                ["bash", "-c", "set -euo pipefail\n" + step.run],
+                cwd=self.root, stdout=log, stderr=subprocess.STDOUT,
+            )  # fmt: skip
 
     def finish(self, step: Step, rc: int, wall_s: float) -> str | None:
         """Record a step that ended; returns why it failed, or None."""

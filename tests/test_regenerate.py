@@ -82,6 +82,7 @@ def test_the_committed_manifest_names_existing_reports_and_fresh_run_folders():
         (step("a", "true", fresh=["docs"]), "not a folder under runs/"),
         (step("a", "true", fresh=["runs/../docs"]), "not a folder under runs/"),
         (step("a", "true", cores=3), "cores must be 1 or 2"),
+        (step("a", "true").replace("cores = 1", "cores = true"), "must be an integer"),
         (step("A b", "true"), "name must match"),
         (step("a", "true").replace("reports = []", "reports = []\nowner = 'x'"), "unknown keys"),
     ],
