@@ -105,8 +105,9 @@ SMALL = {**TINY, "total_sim_steps": 3_200, "eval_episodes": 6, "eval_worlds": 3,
         {"update_path": "compiled"},
         {"update_path": "fast", "select.every_sim_steps": 1_600, "select.episodes": 6},
         {"algorithm": "dqn", "total_sim_steps": 1_600, "learning_starts": 128},
+        {"update_path": "fast", "shield": "shield", "scenario": "grid_dense_adversarial"},
     ],
-    ids=["quadq-fast", "quadq-compiled", "quadq-select", "dqn"],
+    ids=["quadq-fast", "quadq-compiled", "quadq-select", "dqn", "quadq-shield"],
 )
 def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
     from marlmerge.config import from_dict, to_dict

@@ -19,6 +19,8 @@ PAPER_GAMMA = 0.95
 """The discount factor of the paper's recipe (Sec. IV.B): every default discount."""
 ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
 """The ego learners `marlmerge train` can train (`TrainConfig.algorithm`)."""
+TRAIN_SHIELDS: tuple[str, ...] = ("none", "shield", "shield-left")
+"""Gap acceptance's shield in the training loop (`TrainConfig.shield`), as the grid names it."""
 
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
 DEVICE_PATTERN = r"cpu|cuda(:[0-9]+)?|mps"
@@ -204,6 +206,12 @@ class TrainConfig(RunConfig):
     """Where the learner's networks, optimiser state and replay live: "cpu", "cuda", "cuda:N"
     or "mps" (the simulator always runs on the CPU). The random draws (exploration noise,
     minibatch indices) stay on the CPU generators, the same on every device."""
+    shield: str = "none"
+    """With "shield" or "shield-left": while collecting, the ego's commands (every merging
+    vehicle's, under ramp flow) pass through gap acceptance's judgement (`GapShield`, the grid's
+    `@shield` and `@shield-left`), the replay keeps the commands driven, and `evaluation.json`
+    measures the policy behind that shield: a run meant to be deployed as `quadq@shield:RUN`.
+    quadq and td3 only ("none": no shield)."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -216,6 +224,15 @@ class TrainConfig(RunConfig):
                 (
                     self.algorithm in ALGORITHMS,
                     f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
+                ),
+                (
+                    self.shield in TRAIN_SHIELDS,
+                    f"shield must be one of {TRAIN_SHIELDS}, got {self.shield!r}",
+                ),
+                (
+                    self.shield == "none" or self.algorithm != "dqn",
+                    f"shield = {self.shield!r} replaces the commands driven, which dqn's discrete "
+                    "levels cannot store: use algorithm = 'quadq' or 'td3'",
                 ),
                 (
                     re.fullmatch(DEVICE_PATTERN, self.device) is not None,

@@ -32,6 +32,8 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge.io import files
 from marlmerge.learners.base import Learner
+from marlmerge.policies.gap_acceptance import GapShield
+from marlmerge.training.shield import shielded
 
 RowsFn = Callable[[TensorDictBase], Tensor]
 """Collector batch [B, T] -> packed transitions [n, obs | action | reward | terminated | next]."""
@@ -148,13 +150,15 @@ class LearningGroup:
 
 class GroupPolicy:
     """Collector policy of one learning group: writes the learner's `action` [B, 1] m/s^2 (and
-    what else it acts with, e.g. DQN's `action_index`)."""
+    what else it acts with, e.g. DQN's `action_index`), through `shield` if the run has one
+    (`marlmerge.training.shield`)."""
 
-    def __init__(self, group: LearningGroup) -> None:
-        self.group = group
+    def __init__(self, group: LearningGroup, shield: GapShield | None = None) -> None:
+        self.group, self.shield = group, shield
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        for key, value in self.group.act(td.get("observation")).items():
+        obs = td.get("observation")
+        for key, value in shielded(self.shield, obs, self.group.act(obs)).items():
             td.set(key, value)
         return td
 

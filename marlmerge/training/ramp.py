@@ -16,7 +16,9 @@ from tensordict import TensorDict, TensorDictBase
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import TrainConfig
 from marlmerge.evaluation.ramp_flow import check_ramp_scenario
+from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.training.loop import LearningGroup
+from marlmerge.training.shield import shielded
 from marlmerge.views.ramp_flow_torchrl import GROUP, RampFlowTorchEnv
 
 RAMP_AGENTS = 8
@@ -40,15 +42,17 @@ def make_ramp_env(cfg: TrainConfig, scen: ScenarioConfig) -> RampFlowTorchEnv:
 
 class RampGroupPolicy:
     """Collector policy of the `"ramp"` group: the group's learner acts for all B x K columns
-    (free columns too; the env ignores them), one shared policy."""
+    (free columns too; the env ignores them), one shared policy, through `shield` if the run
+    has one."""
 
-    def __init__(self, group: LearningGroup) -> None:
-        self.group = group
+    def __init__(self, group: LearningGroup, shield: GapShield | None = None) -> None:
+        self.group, self.shield = group, shield
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         obs = td.get((GROUP, "observation"))  # [B, K, F]
         b, k, f = obs.shape
-        for key, value in self.group.act(obs.reshape(b * k, f)).items():
+        flat = obs.reshape(b * k, f)
+        for key, value in shielded(self.shield, flat, self.group.act(flat)).items():
             td.set((GROUP, key), value.reshape(b, k, -1))
         return td
 

@@ -41,6 +41,7 @@ from marlmerge.io import files
 from marlmerge.learners.common import resolve_device, sample_uniform
 from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 from marlmerge.learners.quadq_learner import QuadQLearner
+from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.training.checkpoint import open_checkpoint, saved_config
 from marlmerge.training.levels import LevelReplay, SeedLevels
 from marlmerge.training.logs import progress_bar
@@ -50,6 +51,7 @@ from marlmerge.training.loop import (
     run_loop,
     save_checkpoint,
 )
+from marlmerge.training.shield import make_train_shield, shielded
 from marlmerge.training.train import (
     CHECKPOINT_VERSION,
     RunEnd,
@@ -84,6 +86,7 @@ def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
     scen = check_levels(cfg)
+    make_train_shield(cfg, scen)
     if scen.ramp.flowing:
         raise ValueError(
             f"--seeds: scenario {cfg.scenario!r} runs ramp flow (ramp.flow_vph = "
@@ -125,16 +128,20 @@ def make_seed_env(
 
 
 class SeedsPolicy:
-    """Collector policy of S seeds: each seed's learner acts on its slice of the worlds."""
+    """Collector policy of S seeds: each seed's learner acts on its slice of the worlds (through
+    the run's `shield`, row by row, as a single run's)."""
 
-    def __init__(self, groups: list[LearningGroup], worlds_per_seed: int) -> None:
-        self.groups, self.b = groups, worlds_per_seed
+    def __init__(
+        self, groups: list[LearningGroup], worlds_per_seed: int, shield: GapShield | None = None
+    ) -> None:
+        self.groups, self.b, self.shield = groups, worlds_per_seed, shield
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         obs = td.get("observation")  # [S * B, d]
         acts = [g.act(obs[j * self.b : (j + 1) * self.b]) for j, g in enumerate(self.groups)]
-        for key in acts[0]:
-            td.set(key, torch.cat([a[key] for a in acts]))
+        joined = {key: torch.cat([a[key] for a in acts]) for key in acts[0]}
+        for key, value in shielded(self.shield, obs, joined).items():
+            td.set(key, value)
         return td
 
 
@@ -283,7 +290,7 @@ def train_seeds(
     done_steps = runs[0].sim_steps
     collector = make_collector(
         env,
-        SeedsPolicy(groups.groups, b),
+        SeedsPolicy(groups.groups, b, make_train_shield(cfg, env.cfg)),
         len(seeds) * b * cfg.env_steps_per_batch,
         len(seeds) * (cfg.total_sim_steps - done_steps),
         k,

@@ -71,6 +71,7 @@ from marlmerge.training.ramp import (
     ramp_rows,
 )
 from marlmerge.training.select import Selection
+from marlmerge.training.shield import behind_shield, make_train_shield
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 CHECKPOINT_VERSION = 3
@@ -238,6 +239,7 @@ def train(
     flowing = scen.ramp.flowing  # ramp flow: one shared policy for every merging vehicle
     if flowing:
         check_ramp_training(cfg, scen)
+    make_train_shield(cfg, scen)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -267,7 +269,7 @@ def train(
     ego.on_loss = lambda update, loss: logs.loss.write([update, sim_steps, loss])
     collector = make_collector(
         env,
-        RampGroupPolicy(ego) if flowing else GroupPolicy(ego),
+        (RampGroupPolicy if flowing else GroupPolicy)(ego, make_train_shield(cfg, scen)),
         cfg.num_worlds * cfg.env_steps_per_batch,
         cfg.total_sim_steps - sim_steps,
         k,
@@ -461,23 +463,28 @@ def write_timing(out: Path, result: TrainResult, k: int) -> None:
 
 
 def evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:
-    """The greedy policy on the held-out roads (`evaluation.json`), and the run's figures.
-    Ramp flow: the saved policy drives every ramp vehicle (`run_ramp_flow`) until about
-    `eval_episodes` have merged."""
+    """The greedy policy (behind the run's shield, if it has one) on the held-out roads
+    (`evaluation.json`), and the run's figures. Ramp flow: the saved policy drives every ramp
+    vehicle (`run_ramp_flow`) until about `eval_episodes` have merged."""
     evaluation = None
     scen = resolve_config(cfg.scenario)
     if cfg.eval_episodes > 0 and scen.ramp.flowing:
         from marlmerge.evaluation.ramp_flow import evaluate_ramp_flow
 
+        driver = str(out) if cfg.shield == "none" else f"{cfg.algorithm}@{cfg.shield}:{out}"
         evaluation = evaluate_ramp_flow(
-            scen, str(out), cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+            scen, driver, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
         )
         files.write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
     elif cfg.eval_episodes > 0:
         from marlmerge.evaluation.rollout import evaluate_policy
 
         evaluation = evaluate_policy(
-            greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds
+            behind_shield(greedy, make_train_shield(cfg, scen)),
+            scen,
+            cfg.eval_episodes,
+            cfg.eval_seed,
+            cfg.eval_worlds,
         )
         files.write_text(out / "evaluation.json", json.dumps(evaluation, indent=1))
     from marlmerge.training.plots import plot_run

@@ -1,0 +1,94 @@
+"""Gap acceptance's shield in the training loop (`TrainConfig.shield`): the vehicles drive what it
+lets through, the replay stores that, the run is evaluated behind it, and what cannot take it is
+refused before any work."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from test_ramp_training import TINY as TINY_RAMP
+from test_train import TINY
+
+from marlmerge.config.training import TrainConfig
+from marlmerge.training.loop import GroupPolicy
+from marlmerge.training.ramp import RampGroupPolicy
+from marlmerge.training.shield import make_train_shield
+from marlmerge.training.train import train
+from marlmerge.views.ramp_flow_torchrl import RampFlowTorchEnv
+from marlmerge.views.torchrl_env import BatchedMergeEnv
+
+THROTTLE = 2.5  # m/s^2: a learner that floors it, which the shield must overrule in dense traffic
+
+
+class FloorIt:
+    """A learning group's `act` that always asks for full throttle."""
+
+    def act(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"action": torch.full((*obs.shape[:-1], 1), THROTTLE)}
+
+
+def test_the_ego_drives_what_the_shield_lets_through():
+    env = BatchedMergeEnv("grid_dense_adversarial", num_worlds=16, seed=0)
+    shield = make_train_shield(TrainConfig(shield="shield"), env.cfg)
+    policy = GroupPolicy(FloorIt(), shield)  # type: ignore[arg-type]
+    td, overruled = env.reset(), 0
+    for _ in range(80):
+        td = policy(td)
+        asked = np.full((16, 1), THROTTLE)
+        expected = shield(td["observation"].numpy(), asked)
+        assert np.array_equal(td["action"].numpy(), expected)  # what the env steps with
+        overruled += int((td["action"] != THROTTLE).sum())
+        td = env.step(td)["next"]
+    assert overruled > 0
+
+
+def test_every_merging_vehicle_drives_what_the_shield_lets_through():
+    env = RampFlowTorchEnv(overrides={"ramp.flow_vph": 900.0}, num_worlds=4, seed=3)
+    shield = make_train_shield(TrainConfig(scenario="ramp_flow", shield="shield"), env.cfg)
+    policy = RampGroupPolicy(FloorIt(), shield)  # type: ignore[arg-type]
+    td, overruled = env.reset(), 0
+    for _ in range(120):
+        td = policy(td)
+        obs, mask = td["ramp", "observation"], td["ramp", "mask"]
+        flat = obs.reshape(-1, obs.shape[-1]).numpy()
+        expected = shield(flat, np.full((flat.shape[0], 1), THROTTLE)).reshape(4, -1, 1)
+        assert np.array_equal(td["ramp", "action"].numpy(), expected)
+        overruled += int(((td["ramp", "action"] != THROTTLE).squeeze(-1) & mask).sum())
+        td = env.step(td)["next"]
+    assert overruled > 0
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"shield": "always"}, "shield must be one of"),
+        ({"shield": "shield", "algorithm": "dqn"}, "dqn's discrete levels"),
+    ],
+)
+def test_bad_shield_settings_are_named(values, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**values)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"shield": "shield-left"}, "reads the left lane, which ego.observation = 'paper'"),
+        ({"shield": "shield", "scenario": "chosen_join"}, "leaves the join to the policy"),
+    ],
+)
+def test_a_scenario_the_shield_cannot_judge_is_refused_before_any_work(tmp_path, values, message):
+    cfg = TrainConfig(**{**TINY, **values})
+    with pytest.raises(ValueError, match=message):
+        train(cfg, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_a_shielded_ramp_flow_run_is_evaluated_behind_its_shield(tmp_path):
+    cfg = TrainConfig(**{**TINY_RAMP, "shield": "shield", "eval_episodes": 30, "eval_worlds": 2})
+    train(cfg, tmp_path / "run", progress=False)
+    evaluation = json.loads((tmp_path / "run" / "evaluation.json").read_text())
+    assert evaluation["driver"] == f"quadq@shield:{tmp_path / 'run'}"
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["shield"] == "shield"
