@@ -162,6 +162,8 @@ class TrafficCore:
             self._kernel, self._worlds = kernels.rollout, (0, batch_size)
         self._called = False
         self._served_k = -1
+        self._resampling = cfg.sample.active  # (config properties cost a call each time)
+        self._noisy = cfg.sensing.noisy
         self.state = TrafficState(self)
         timer = _announce_compilation("core")
         self.reset(seed=seed)
@@ -418,25 +420,24 @@ class TrafficCore:
                 "no ego (its ramp vehicles are agents: marlmerge.evaluation.ramp_flow)"
             )
         sel = self._mask(mask)
-        if not sel.any():
-            return
-        if self.cfg.sample.active:  # worlds that drew their traffic long enough get new traffic
+        if self._resampling:  # worlds that drew their traffic long enough get new traffic
             redraw = sel & (self.wi[:, L.WI_EGO_COUNT] >= self.cfg.sample.resample_every_egos)
             if redraw.any():
                 self.reset(mask=redraw)
                 sel = sel & ~redraw
-                if not sel.any():
-                    return
-        rows = np.flatnonzero(sel)
-        short = (self.wi[rows, L.WI_COUNT_RIGHT + EGO_STREAM] < 1) | (
-            self.wi[rows, L.WI_N_ACTIVE] + 2 >= self.n_slots
-        )
-        if self.cfg.sensing.noisy:  # a departure measures once; the next call needs k + 2
-            short |= self.wi[rows, L.WI_NOISE_COUNT] < max(self._served_k, 1) + 3
-        if short.any():  # only after direct set-ups: every call leaves room for one next_ego
+        # a departure measures once (noise on); the next call needs k + 2
+        noise_need = max(self._served_k, 1) + 3 if self._noisy else 0
+        status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, noise_need)
+        if status < 0:  # only after direct set-ups: every call leaves room for one next_ego
+            rows = np.flatnonzero(sel)
+            short = (self.wi[rows, L.WI_COUNT_RIGHT + EGO_STREAM] < 1) | (
+                self.wi[rows, L.WI_N_ACTIVE] + 2 >= self.n_slots
+            )
+            short |= self.wi[rows, L.WI_NOISE_COUNT] < noise_need
             self._serve(max(self._served_k, 1), rows[short])
-        kernels.next_ego(self.arrays, self.sensor, self.params, sel)
-        self._check_overflow()
+            status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, -1)
+        if status:
+            self._check_overflow()
 
     def remove_ego(self, mask: np.ndarray | None = None) -> None:
         """Take the ramp vehicle off the road in the worlds of `mask` (all if None): traffic-only
@@ -534,12 +535,13 @@ class TrafficCore:
         trace = np.empty((b, k, L.TR_COLS))
         ego_obs = np.empty((b, self.obs_size), dtype=np.float32)
         hw_obs = np.empty((b, n_agents, len(HIGHWAY_FEATURES)), dtype=np.float32)
+        call = np.empty((L.WI_EGO_STEPS + 1 - L.WI_STEP_OUTCOME, b), dtype=np.int64)  # [5, B]
         timer = None if self._called else _announce_compilation(repr(self._kernel))
         status = self._kernel(
             self.arrays, self.sensor, *self._worlds, self.params, k,
             self._all_worlds if step_mask is None else step_mask,
             ego_cmd, roster.rows, roster_cmd,
-            ego_terms, hw_terms, trace, ego_obs, hw_obs,
+            ego_terms, hw_terms, trace, ego_obs, hw_obs, call,
         )  # fmt: skip
         if timer is not None:
             timer.cancel()
@@ -548,7 +550,6 @@ class TrafficCore:
             self._check_overflow()
         if status:
             self._serve(k, np.flatnonzero(self.wi[:, L.WI_NEED]))
-        call = self.wi[:, L.WI_CALL].T.copy()  # [5, B]: what the call did, per world
         no_agents = _NO_AGENTS[:b]
         return Rollout(
             substeps=call[L.WI_SUBSTEPS - L.WI_STEP_OUTCOME],

@@ -102,6 +102,7 @@ from marlmerge.sim.layout import (
     WF_VB,
     WF_VF,
     WI_BACK,
+    WI_COUNT_EGO,
     WI_COUNT_RIGHT,
     WI_EGO_COUNT,
     WI_EGO_PARTNER,
@@ -322,12 +323,14 @@ def rollout_world(
     trace: np.ndarray,
     ego_obs: np.ndarray,
     hw_obs: np.ndarray,
+    call_out: np.ndarray,
 ) -> int:
     """Up to `k` simulator steps of world `b` with the ego command ego_cmd[b] (acceleration,
     join: `substep`) and the agents' roster_cmd[b] [K, 2] (see the module docstring). Outputs:
     ego_terms[b] [len(EGO_TERMS)], hw_terms[b] [K, 8], trace[b, :k] [TR_COLS], the
     observations, and per world `WI_SUBSTEPS`, the outcome reached (`WI_STEP_OUTCOME`) with the
-    ego's collision partner. Returns `_needs_service`, plus `OVERFLOW` if the world overflowed."""
+    ego's collision partner, also copied to call_out[:, b] (the `WI_CALL` columns). Returns
+    `_needs_service`, plus `OVERFLOW` if the world overflowed."""
     vf, vi, wf, wi, lanes, sched = S
     for s in range(vi.shape[2]):
         vi[b, VI_FLAGS, s] = 0
@@ -364,6 +367,8 @@ def rollout_world(
             steps = i + 1
     wi[b, WI_STEP_OUTCOME], wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR] = outcome, partner, rear
     wi[b, WI_SUBSTEPS], wi[b, WI_EGO_STEPS] = steps, ego_steps
+    for c in range(call_out.shape[0]):  # [5, B]: the call's WI_CALL columns, while they are hot
+        call_out[c, b] = wi[b, WI_STEP_OUTCOME + c]
     observe_world(S, X, b, p, roster, ego_obs, hw_obs)
     return _needs_service(S, b, p, k) + OVERFLOW * wi[b, WI_OVERFLOW]
 
@@ -385,6 +390,7 @@ def rollout(
     trace: np.ndarray,
     ego_obs: np.ndarray,
     hw_obs: np.ndarray,
+    call_out: np.ndarray,
 ) -> int:
     """`rollout_world` for the worlds lo..hi-1, one after the other. Returns the sum of their
     statuses (how many need service, plus `OVERFLOW` for each that overflowed)."""
@@ -406,6 +412,7 @@ def rollout(
             trace,
             ego_obs,
             hw_obs,
+            call_out,
         )
     return status
 
@@ -426,6 +433,7 @@ def rollout_parallel(
     trace: np.ndarray,
     ego_obs: np.ndarray,
     hw_obs: np.ndarray,
+    call_out: np.ndarray,
 ) -> int:
     """`rollout` over `n_chunks` equal chunks of the worlds in parallel threads: the same
     results as one serial call, since worlds are independent."""
@@ -448,6 +456,7 @@ def rollout_parallel(
             trace,
             ego_obs,
             hw_obs,
+            call_out,
         )
     return status
 
@@ -571,11 +580,30 @@ def remove_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel
-def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray) -> None:
-    """`next_ego_world` for the worlds of `mask`."""
-    for b in range(S[0].shape[0]):
+def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray, noise_need: int) -> int:
+    """`next_ego_world` for the worlds of `mask`, if each has a drawn departure, room for two
+    more vehicles and at least `noise_need` drawn measurement errors; otherwise nothing, and
+    -1 (the Python side draws ahead, then calls again with `noise_need` < 0: no checks).
+    Returns the worlds that overflowed."""
+    vf, vi, wf, wi, lanes, sched = S
+    n_slots = vi.shape[2]
+    for b in range(vf.shape[0]):
+        if (
+            noise_need >= 0
+            and mask[b]
+            and (
+                wi[b, WI_COUNT_EGO] < 1
+                or wi[b, WI_N_ACTIVE] + 2 >= n_slots
+                or wi[b, WI_NOISE_COUNT] < noise_need
+            )
+        ):
+            return -1
+    overflowed = 0
+    for b in range(vf.shape[0]):
         if mask[b]:
             next_ego_world(S, X, b, p[b])
+        overflowed += wi[b, WI_OVERFLOW]
+    return overflowed
 
 
 @kernel
