@@ -119,6 +119,11 @@ def train_cmd(args: argparse.Namespace) -> int:
     )
     if result.evaluation is not None:
         _print_evaluation(result.evaluation)
+    if cfg.shield != "none":
+        print(
+            f"trained (and evaluated) behind gap acceptance's shield: drive it the same way, "
+            f"as {cfg.algorithm}@{cfg.shield}:{out}"
+        )
     print(f"logs, checkpoint, policy and figures in {out}")
     return 0
 

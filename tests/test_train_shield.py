@@ -10,6 +10,7 @@ import torch
 from test_ramp_training import TINY as TINY_RAMP
 from test_train import TINY
 
+from marlmerge.cli import main
 from marlmerge.config.training import TrainConfig
 from marlmerge.training.loop import GroupPolicy
 from marlmerge.training.ramp import RampGroupPolicy
@@ -86,9 +87,13 @@ def test_a_scenario_the_shield_cannot_judge_is_refused_before_any_work(tmp_path,
 
 
 @pytest.mark.slow
-def test_a_shielded_ramp_flow_run_is_evaluated_behind_its_shield(tmp_path):
-    cfg = TrainConfig(**{**TINY_RAMP, "shield": "shield", "eval_episodes": 30, "eval_worlds": 2})
-    train(cfg, tmp_path / "run", progress=False)
-    evaluation = json.loads((tmp_path / "run" / "evaluation.json").read_text())
-    assert evaluation["driver"] == f"quadq@shield:{tmp_path / 'run'}"
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["shield"] == "shield"
+def test_a_shielded_ramp_flow_run_is_evaluated_behind_its_shield(tmp_path, capsys):
+    values = {**TINY_RAMP, "shield": "shield", "eval_episodes": 30, "eval_worlds": 2}
+    quote = {k: f'"{v}"' if isinstance(v, str) else v for k, v in values.items()}
+    run = tmp_path / "run"
+    sets = [f"--set={k}={v}" for k, v in quote.items()]
+    assert main(["train", "--out", str(run), "--no-progress", *sets]) == 0
+    assert f"drive it the same way, as quadq@shield:{run}" in capsys.readouterr().out
+    evaluation = json.loads((run / "evaluation.json").read_text())
+    assert evaluation["driver"] == f"quadq@shield:{run}"
+    assert json.loads((run / "config.json").read_text())["shield"] == "shield"
