@@ -75,7 +75,7 @@ def test_bad_shield_settings_are_named(values, message):
 @pytest.mark.parametrize(
     ("values", "message"),
     [
-        ({"shield": "shield-left"}, "reads the left lane, which ego.observation = 'paper'"),
+        ({"shield": "shield-left"}, "reads the left-lane features; ego.observation = 'paper'"),
         ({"shield": "shield", "scenario": "chosen_join"}, "leaves the join to the policy"),
     ],
 )

@@ -104,7 +104,7 @@ def parse_policy(spec: str) -> PolicySpec:
 def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> EgoPolicy:
     """The obs [B, F] -> action [B, A] function of one policy (and one training run; A = 2
     with `ego.join = "chosen"`: the rules hold and IDM join at the overlap point)."""
-    from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, GapShield
+    from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, grid_shield
 
     if spec.kind in LEARNED_KINDS:
         from marlmerge.learners.loading import load_policy
@@ -126,8 +126,7 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
     if not spec.shield:
         return policy
     check_shield_left(spec, scenario)
-    left = spec.shield_left
-    shield = GapShield(scenario, watch_left=left, cap_in_lane=left, keep_rolling=left)
+    shield = grid_shield(scenario, spec.shield_left)
     return lambda obs: torch.as_tensor(shield(obs.numpy(), policy(obs).numpy()))
 
 

@@ -509,3 +509,9 @@ class GapShield:
         k = np.argmin(dist, axis=-1)[..., None]
         a_join = np.take_along_axis(gap.plan_accel, k, -1)
         return np.where(gap.accepts[..., None], a_join, gap.accel)
+
+
+def grid_shield(cfg: ScenarioConfig | None, left: bool) -> GapShield:
+    """The shield the grid's policy specs name: `@shield` (`left` False) or `@shield-left`
+    (`watch_left`, `cap_in_lane` and `keep_rolling` all on)."""
+    return GapShield(cfg, watch_left=left, cap_in_lane=left, keep_rolling=left)

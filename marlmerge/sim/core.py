@@ -429,12 +429,8 @@ class TrafficCore:
         noise_need = max(self._served_k, 1) + 3 if self._noisy else 0
         status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, noise_need)
         if status < 0:  # only after direct set-ups: every call leaves room for one next_ego
-            rows = np.flatnonzero(sel)
-            short = (self.wi[rows, L.WI_COUNT_RIGHT + EGO_STREAM] < 1) | (
-                self.wi[rows, L.WI_N_ACTIVE] + 2 >= self.n_slots
-            )
-            short |= self.wi[rows, L.WI_NOISE_COUNT] < noise_need
-            self._serve(max(self._served_k, 1), rows[short])
+            short = np.flatnonzero(sel & (self.wi[:, L.WI_NEED] != 0))  # flagged by the kernel
+            self._serve(max(self._served_k, 1), short)
             status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, -1)
         if status:
             self._check_overflow()
@@ -535,7 +531,7 @@ class TrafficCore:
         trace = np.empty((b, k, L.TR_COLS))
         ego_obs = np.empty((b, self.obs_size), dtype=np.float32)
         hw_obs = np.empty((b, n_agents, len(HIGHWAY_FEATURES)), dtype=np.float32)
-        call = np.empty((L.WI_EGO_STEPS + 1 - L.WI_STEP_OUTCOME, b), dtype=np.int64)  # [5, B]
+        call = np.empty((L.WI_CALL.stop - L.WI_CALL.start, b), dtype=np.int64)  # [5, B]
         timer = None if self._called else _announce_compilation(repr(self._kernel))
         status = self._kernel(
             self.arrays, self.sensor, *self._worlds, self.params, k,

@@ -582,11 +582,12 @@ def remove_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
 @kernel
 def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray, noise_need: int) -> int:
     """`next_ego_world` for the worlds of `mask`, if each has a drawn departure, room for two
-    more vehicles and at least `noise_need` drawn measurement errors; otherwise nothing, and
-    -1 (the Python side draws ahead, then calls again with `noise_need` < 0: no checks).
-    Returns the worlds that overflowed."""
+    more vehicles and at least `noise_need` drawn measurement errors; otherwise nothing, the
+    worlds short of them flagged `WI_NEED`, and -1 (the Python side draws ahead for them, then
+    calls again with `noise_need` < 0: no checks). Returns the worlds that overflowed."""
     vf, vi, wf, wi, lanes, sched = S
     n_slots = vi.shape[2]
+    short = False
     for b in range(vf.shape[0]):
         if (
             noise_need >= 0
@@ -597,7 +598,10 @@ def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray, noise_need: in
                 or wi[b, WI_NOISE_COUNT] < noise_need
             )
         ):
-            return -1
+            wi[b, WI_NEED] = 1
+            short = True
+    if short:
+        return -1
     overflowed = 0
     for b in range(vf.shape[0]):
         if mask[b]:

@@ -17,28 +17,19 @@ from torch import Tensor
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import TrainConfig
-from marlmerge.policies.gap_acceptance import GapShield
-from marlmerge.sim.observation import shows_left_lane
+from marlmerge.policies.gap_acceptance import GapShield, grid_shield
 
 
 def make_train_shield(cfg: TrainConfig, scen: ScenarioConfig) -> GapShield | None:
-    """The run's shield (None for `shield = "none"`), refused before any work where the
-    scenario cannot take it."""
+    """The run's shield (None for `shield = "none"`), refused before any work, naming the key,
+    where the scenario cannot take it (`GapShield`'s own checks: a chosen join point, or the
+    left-lane shield without left-lane features)."""
     if cfg.shield == "none":
         return None
-    where = f"shield = {cfg.shield!r} on scenario {cfg.scenario!r}"
-    if scen.ego.chooses_join:
-        raise ValueError(
-            f"{where}: ego.join = {scen.ego.join!r} leaves the join to the policy; the shield "
-            "judges joins at the overlap point (use ego.join = 'forced')"
-        )
-    left = cfg.shield == "shield-left"
-    if left and not shows_left_lane(scen):
-        raise ValueError(
-            f"{where}: the shield reads the left lane, which ego.observation = "
-            f"{scen.ego.observation!r} does not show (use 'extended' or 'extended_accel')"
-        )
-    return GapShield(scen, watch_left=left, cap_in_lane=left, keep_rolling=left)
+    try:
+        return grid_shield(scen, cfg.shield == "shield-left")
+    except ValueError as e:
+        raise ValueError(f"shield = {cfg.shield!r} on scenario {cfg.scenario!r}: {e}") from None
 
 
 def shielded(shield: GapShield | None, obs: Tensor, acted: dict[str, Tensor]) -> dict[str, Tensor]:

@@ -239,7 +239,7 @@ def train(
     flowing = scen.ramp.flowing  # ramp flow: one shared policy for every merging vehicle
     if flowing:
         check_ramp_training(cfg, scen)
-    make_train_shield(cfg, scen)
+    shield = make_train_shield(cfg, scen)  # refused before anything is written
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -269,7 +269,7 @@ def train(
     ego.on_loss = lambda update, loss: logs.loss.write([update, sim_steps, loss])
     collector = make_collector(
         env,
-        (RampGroupPolicy if flowing else GroupPolicy)(ego, make_train_shield(cfg, scen)),
+        (RampGroupPolicy if flowing else GroupPolicy)(ego, shield),
         cfg.num_worlds * cfg.env_steps_per_batch,
         cfg.total_sim_steps - sim_steps,
         k,
