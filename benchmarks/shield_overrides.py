@@ -5,7 +5,8 @@ call of the shield: for each ramp vehicle that the shield judged (on the ramp, b
 the settling time included), its position, speed, the command asked and the command driven.
 Prints the ramp-flow result's flow, delay and collisions, the share of commands the shield
 changed, and the same by 25 m of ramp, so that one sees where a policy drives differently from
-gap acceptance and where the shield steps in.
+gap acceptance and where the shield steps in. (`marlmerge rampflow` itself reports the share
+over the measurement window, `shield_changed_share`; this script adds where on the ramp.)
 
     python benchmarks/shield_overrides.py "gap@shield-left"
     python benchmarks/shield_overrides.py "quadq@shield-left:runs/ramp_flow_shielded_s0"
@@ -21,10 +22,10 @@ import numpy as np
 from marlmerge.config.presets import resolve_config
 from marlmerge.evaluation.ramp_flow import run_ramp_flow
 from marlmerge.policies import gap_acceptance
+from marlmerge.policies.gap_acceptance import CHANGED_MPS2
 from marlmerge.sim.observation import EGO_FEATURES, EGO_SCALE, feature_index
 
 BIN_M = 25.0
-CHANGED_MPS2 = 1e-4  # a command the shield moved by more than this was changed
 
 
 class Recorder:

@@ -235,6 +235,15 @@ def _print_evaluation(ev: dict) -> None:
         )
 
 
+def _note_bare_shield(spec: str) -> None:
+    """Say so where a run trained behind the shield is driven without it."""
+    from marlmerge.evaluation.registry import bare_shield_note
+
+    note = bare_shield_note(spec)
+    if note:
+        print(note, file=sys.stderr)
+
+
 def evaluate_cmd(args: argparse.Namespace) -> int:
     """Evaluate a saved policy greedily on held-out episodes."""
     from marlmerge.config.presets import resolve_config
@@ -248,6 +257,7 @@ def evaluate_cmd(args: argparse.Namespace) -> int:
     from marlmerge.evaluation.rollout import run_episodes, summarize
 
     policy, scen = policy_for_evaluation(args.policy, scen)
+    _note_bare_shield(args.policy)
     if scen.ramp.flowing:  # the merge as a whole: every ramp vehicle driven by the policy
         if args.highway or args.fairness:
             raise ValueError(
@@ -353,6 +363,7 @@ def estimate_cmd(args: argparse.Namespace) -> int:
     from marlmerge.evaluation.registry import policy_for_evaluation
 
     policy, scen = policy_for_evaluation(args.policy, scen)
+    _note_bare_shield(args.policy)
     report = Estimator(policy, args.policy, scen, settings, args.out).run()
     lo, hi = report["ci95"]
     print(
@@ -372,12 +383,11 @@ def rampflow_cmd(args: argparse.Namespace) -> int:
     """Ramp flow: every ramp vehicle driven by one policy, the merge measured as a whole, one
     row per ramp demand; the last line printed is the JSON of all rows."""
     from marlmerge.config.presets import resolve_config
-    from marlmerge.evaluation.ramp_flow import merge_line, run_ramp_flow
+    from marlmerge.evaluation.ramp_flow import merge_line, parse_mix, run_ramp_flow
 
     if args.scenario is not None:
         base = resolve_config(args.scenario)
     else:  # the policy's own scenario (a learned one's training scenario; rules: the default)
-        from marlmerge.evaluation.ramp_flow import parse_mix
         from marlmerge.evaluation.registry import policy_for_evaluation
 
         base = policy_for_evaluation(parse_mix(args.policy)[0][0], None)[1]
@@ -389,6 +399,8 @@ def rampflow_cmd(args: argparse.Namespace) -> int:
     demands = [base.ramp.flow_vph] if args.ramp_flow is None else _demands(args.ramp_flow)
     if args.mainline_flow is not None:
         base = base.replace(**{"traffic.flow_vph_per_lane": args.mainline_flow})
+    for spec, _ in parse_mix(args.policy):
+        _note_bare_shield(spec)
     rows = []
     for vph in demands:
         cfg = base.replace(**{"ramp.flow_vph": vph})

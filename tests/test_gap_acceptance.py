@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.policies.gap_acceptance import GapAcceptancePolicy, GapShield, IdmEgoPolicy
+from marlmerge.policies.gap_acceptance import (
+    GapAcceptancePolicy,
+    GapShield,
+    IdmEgoPolicy,
+    ShieldTally,
+)
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 from marlmerge.sim.observation import EGO_SCALE, ego_features
 
@@ -157,6 +162,20 @@ def test_the_shield_stops_a_join_alongside_a_vehicle_and_keeps_a_safe_one(cfg):
     # the same place with the vehicle 60 m behind: joining is safe, the command stands
     clear = _obs(cfg, 25.0, cfg.x_overlap_m - 12.0, back=(-60.0, 25.0))
     assert shield(clear, np.array([[1.0]], dtype=np.float32))[0, 0] == 1.0
+
+
+def test_the_shield_counts_the_ramp_commands_it_judges_and_changes(cfg):
+    shield = GapShield(cfg)
+    alongside = _obs(cfg, 25.0, cfg.x_overlap_m - 12.0, back=(-2.0, 27.0))  # overruled
+    clear = _obs(cfg, 25.0, cfg.x_overlap_m - 12.0, back=(-60.0, 25.0))  # stands
+    in_lane = _obs(cfg, 25.0, -10.0, front=(30.0, 18.0), back=(-20.0, 22.0))  # not judged
+    free_column = np.zeros_like(clear)  # an absent agent: all zeros, x = 0 past the join
+    obs = np.concatenate([alongside, clear, in_lane, free_column])
+    before = ShieldTally(shield.tally.judged, shield.tally.changed)
+    shield(obs, np.ones((4, 1), dtype=np.float32))
+    assert shield.tally == ShieldTally(judged=2, changed=1)
+    shield(obs[:1], np.ones((1, 1), dtype=np.float32))
+    assert shield.tally.since(before) == ShieldTally(judged=3, changed=2)
 
 
 def test_a_shielded_policy_never_collides_where_the_bare_one_does(cfg):

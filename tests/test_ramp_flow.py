@@ -8,7 +8,7 @@ import pytest
 
 from marlmerge.cli import main
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.ramp_flow import ramp_commands, run_ramp_flow
+from marlmerge.evaluation.ramp_flow import merge_line, ramp_commands, run_ramp_flow
 from marlmerge.evaluation.registry import policy_from_spec
 from marlmerge.sim import TrafficCore
 from marlmerge.sim import layout as L
@@ -394,3 +394,18 @@ def test_a_shield_that_watches_the_left_lane_drives_ramp_agents():
     again = run_ramp_flow(FLOW, "gap@shield-left=0.5,gap=0.5", hours=0.05, worlds=2, seed=1,
                           skip_s=60)  # fmt: skip
     assert r.merged_vph > 0 and r.to_dict() | {"wall_s": 0} == again.to_dict() | {"wall_s": 0}
+
+
+def test_the_report_says_how_often_the_shield_changed_the_commands():
+    """Behind a shield the result counts the ramp commands it judged in the measurement window
+    and the share it changed: few of gap acceptance's own, many of a vehicle that holds its
+    speed into the merge; without a shield both are None."""
+    gap = run_ramp_flow(FLOW, "gap@shield", hours=0.05, worlds=2, seed=1, skip_s=60)
+    hold = run_ramp_flow(FLOW, "hold@shield", hours=0.05, worlds=2, seed=1, skip_s=60)
+    bare = run_ramp_flow(FLOW, "gap", hours=0.05, worlds=2, seed=1, skip_s=60)
+    # 2 worlds x 180 s at 600 veh/h: ~60 vehicles, each judged for ~10 s at 2 commands a second
+    assert gap.shield_judged > 500 and hold.shield_judged > 500
+    assert gap.shield_changed_share < 0.1 < hold.shield_changed_share
+    assert bare.shield_judged is None and bare.shield_changed_share is None
+    assert "the shield changed" in merge_line(hold.to_dict())
+    assert "the shield" not in merge_line(bare.to_dict())

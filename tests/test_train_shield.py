@@ -96,4 +96,13 @@ def test_a_shielded_ramp_flow_run_is_evaluated_behind_its_shield(tmp_path, capsy
     assert f"drive it the same way, as quadq@shield:{run}" in capsys.readouterr().out
     evaluation = json.loads((run / "evaluation.json").read_text())
     assert evaluation["driver"] == f"quadq@shield:{run}"
+    assert evaluation["shield_judged"] > 0 and 0.0 <= evaluation["shield_changed_share"] <= 1.0
     assert json.loads((run / "config.json").read_text())["shield"] == "shield"
+    # driven without its shield, the commands say how to drive it as trained
+    note = "was trained behind the shield (shield) and drives here without it; as trained: "
+    rampflow = ["rampflow", "--hours", "0.02", "--worlds", "1", "--skip", "0"]
+    for spec in (str(run), f"quadq:{run}", f"{run}=0.5,gap=0.5"):
+        assert main([*rampflow, spec]) == 0
+        assert f"{note}quadq@shield:{run}" in capsys.readouterr().err
+    assert main([*rampflow, f"quadq@shield:{run}"]) == 0
+    assert "trained behind the shield" not in capsys.readouterr().err

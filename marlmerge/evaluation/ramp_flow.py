@@ -28,7 +28,7 @@ What is measured (`RampFlowResult`), in a window that starts `skip_s` after the 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,7 @@ import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.merge_metrics import MergeTally
+from marlmerge.evaluation.registry import ShieldedPolicy, policy_for_evaluation
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.state import Roster
 
@@ -90,6 +91,11 @@ class RampFlowResult:
     """Mainline vehicles a ramp vehicle joined ahead of."""
     joins_braking_over_b: int
     hardest_braking_after_join_mps2: float
+    shield_judged: int | None = None
+    """Behind `@shield` / `@shield-left`: the ramp vehicles' commands the shield judged (on the
+    ramp, in the measurement window; `GapShield.tally`); None without a shield."""
+    shield_changed_share: float | None = None
+    """... the share of them it changed (None without a shield or with none judged)."""
     wall_s: float = 0.0
 
     def to_dict(self) -> dict[str, object]:
@@ -118,7 +124,15 @@ def merge_line(row: dict[str, Any]) -> str:
         f"{row['cut_ins_braking_over_b']} braked > b (hardest "
         f"{row['hardest_braking_after_cut_in_mps2']:.1f}), after {row['joins']} joins "
         f"{row['joins_braking_over_b']} (hardest {row['hardest_braking_after_join_mps2']:.1f})"
+        + _shield_part(row)
     )
+
+
+def _shield_part(row: dict[str, Any]) -> str:
+    share = row.get("shield_changed_share")
+    if share is None:
+        return ""
+    return f"; the shield changed {100 * share:.1f} % of {row['shield_judged']:,} ramp commands"
 
 
 def _defined(value: object) -> object:
@@ -171,8 +185,6 @@ def agents_scenario(cfg: ScenarioConfig, specs: list[str]) -> tuple[list, Scenar
     """The policies of `specs` (`policy_for_evaluation`) and the scenario the ramp agents are
     simulated in: `cfg` with the ego-side settings (`EGO_SIDE_KEYS`: the observation layout
     and the filter) of its learned policies, which must agree; rules drive in any."""
-    from marlmerge.evaluation.registry import policy_for_evaluation
-
     loaded = [policy_for_evaluation(spec, cfg) for spec in specs]
     own = {spec: scen for spec, (_, scen) in zip(specs, loaded, strict=True) if scen != cfg}
     agents_cfg = next(iter(own.values()), cfg)
@@ -267,13 +279,23 @@ def run_ramp_flow(
     step_s = cfg.sim.dt_s * cfg.sim.action_repeat
     _drive(core, drivers, int(round(skip_s / step_s)), None, None)
     before = _counters(core)
+    shields = [p.shield.tally for p in policies if isinstance(p, ShieldedPolicy)]
+    shields_before = [replace(t) for t in shields]
     speeds = np.zeros(4)  # summed speed and samples: merge zone, upstream
     tally = MergeTally(cfg, worlds)
     n_steps = int(round(hours * 3600.0 / step_s))
     _drive(core, drivers, n_steps, speeds, tally)
     after = _counters(core)
     result = _result(cfg, driver, worlds, n_steps * step_s, before, after, speeds, tally)
-    return RampFlowResult(**{**asdict(result), "wall_s": time.perf_counter() - start})
+    judged = changed = 0
+    for t, t0 in zip(shields, shields_before, strict=True):
+        judged, changed = judged + t.since(t0).judged, changed + t.since(t0).changed
+    return replace(
+        result,
+        shield_judged=judged if shields else None,
+        shield_changed_share=changed / judged if judged else None,
+        wall_s=time.perf_counter() - start,
+    )
 
 
 def evaluate_ramp_flow(

@@ -28,12 +28,16 @@ from __future__ import annotations
 import glob
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.rollout import EgoPolicy
 from marlmerge.sim.observation import shows_left_lane
+
+if TYPE_CHECKING:
+    from marlmerge.policies.gap_acceptance import GapShield
 
 RULE_POLICIES = ("hold", "idm", "gap")
 LEARNED_KINDS = ("quadq", "dqn", "td3")
@@ -126,8 +130,18 @@ def make_policy(spec: PolicySpec, run: str | None, scenario: ScenarioConfig) -> 
     if not spec.shield:
         return policy
     check_shield_left(spec, scenario)
-    shield = grid_shield(scenario, spec.shield_left)
-    return lambda obs: torch.as_tensor(shield(obs.numpy(), policy(obs).numpy()))
+    return ShieldedPolicy(policy, grid_shield(scenario, spec.shield_left))
+
+
+class ShieldedPolicy:
+    """A policy (obs [B, F] -> action [B, 1]) with its commands through `shield` (`@shield`,
+    `@shield-left`); `shield.tally` counts what the shield judged and changed."""
+
+    def __init__(self, policy: EgoPolicy, shield: GapShield) -> None:
+        self.policy, self.shield = policy, shield
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(self.shield(obs.numpy(), self.policy(obs).numpy()))
 
 
 def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -> ScenarioConfig:
@@ -184,6 +198,34 @@ def policy_for_evaluation(
     run = parsed.runs[0] if parsed.runs else None
     scenario = scenario_for(parsed, run, scenario or own(run))
     return make_policy(parsed, run, scenario), scenario
+
+
+def bare_shield_note(spec: str) -> str | None:
+    """A note for a policy spec that drives a run trained behind gap acceptance's shield
+    (`TrainConfig.shield`) without it, saying how to drive it as trained; None otherwise (rules,
+    mixes, specs with a shield, runs trained bare)."""
+    from marlmerge.io.policy_file import read_policy
+
+    if Path(spec).exists():
+        kind, runs = "", (spec,)
+    else:
+        try:
+            parsed = parse_policy(spec)
+        except ValueError:
+            return None
+        if parsed.shield or not parsed.runs:
+            return None
+        kind, runs = parsed.kind, parsed.runs
+    for run in runs:
+        saved = read_policy(run, "ego")
+        shield = saved["config"].get("shield", "none")
+        if shield != "none":
+            algorithm = kind or saved["algorithm"]
+            return (
+                f"note: {run} was trained behind the shield ({shield}) and drives here without "
+                f"it; as trained: {algorithm}@{shield}:{run}"
+            )
+    return None
 
 
 def policy_from_spec(spec: str, scenario: ScenarioConfig) -> EgoPolicy:

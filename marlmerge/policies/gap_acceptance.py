@@ -10,6 +10,7 @@ learned ego policy.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -33,6 +34,7 @@ __all__ = [
     "GapDecision",
     "GapShield",
     "IdmEgoPolicy",
+    "ShieldTally",
     "constant_speed_action",
 ]
 
@@ -41,6 +43,8 @@ KEEP_ROLLING_MPS = 2.0
 """`GapShield(keep_rolling=True)`: a command that leaves the ego slower than this (m/s) more
 than `ROLL_ROOM_M` before gap acceptance's wait point is raised to gap acceptance's action."""
 ROLL_ROOM_M = 5.0
+CHANGED_MPS2 = 1e-4
+"""A command the shield moved by more than this (m/s^2) counts as changed (`ShieldTally`)."""
 
 
 class GapDecision(NamedTuple):
@@ -302,6 +306,27 @@ class GapAcceptancePolicy:
         return GapDecision(accel.astype(np.float32), accept & joins.any(-1), a_cmd, joins)
 
 
+@dataclass
+class ShieldTally:
+    """How often a `GapShield` stepped in since it was built: the commands it judged (rows on
+    the ramp, before the join point x_ov) and how many of those it changed. Rows past x_ov
+    (`cap_in_lane`'s) and free agent columns (all-zero observations sit at x = 0) are not
+    counted. The share is a number a user of `@shield` should see: a policy the shield keeps
+    overruling drives gap acceptance's merge, not its own."""
+
+    judged: int = 0
+    changed: int = 0
+
+    def add(self, on_ramp: np.ndarray, asked: np.ndarray, driven: np.ndarray) -> None:
+        """Count one call: on_ramp, asked, driven [B, 1]."""
+        self.judged += int(on_ramp.sum())
+        self.changed += int((on_ramp & (np.abs(driven - asked) > CHANGED_MPS2)).sum())
+
+    def since(self, before: ShieldTally) -> ShieldTally:
+        """The counts after `before` (a copy taken earlier)."""
+        return ShieldTally(self.judged - before.judged, self.changed - before.changed)
+
+
 class GapShield:
     """Gap acceptance's judgement over another policy's command (the grid's `@shield`).
 
@@ -356,6 +381,9 @@ class GapShield:
       well before gap acceptance's wait point is raised to gap acceptance's action, which rolls
       on to that point. A learned ego that stops early on a long ramp in slow traffic otherwise
       stalls there until its episode is truncated, and the shield, which judges joins, let it.
+
+    `tally` (`ShieldTally`) counts the commands judged on the ramp and those changed; the
+    judgement itself depends on nothing but the call's arguments.
     """
 
     def __init__(
@@ -394,6 +422,7 @@ class GapShield:
         self.left_margin_mps2 = left_margin_mps2
         self._cap = IdmEgoPolicy(self.cfg) if cap_in_lane else None
         self.keep_rolling = keep_rolling
+        self.tally = ShieldTally()
 
     def __call__(self, obs: np.ndarray, cmd: np.ndarray) -> np.ndarray:
         """obs [B, F] scaled ego observation, cmd [B, 1] (m/s^2) -> [B, 1] the command or the
@@ -419,7 +448,9 @@ class GapShield:
         if self._cap is not None:
             in_lane = joined(seen, self.cfg)[..., None]
             out = np.where(in_lane, np.minimum(out, self._cap(seen)), out)
-        return out.astype(np.float32)
+        out = out.astype(np.float32)
+        self.tally.add(x < x_ov, a, out.astype(np.float64))
+        return out
 
     def _left_movers(self, obs: np.ndarray) -> np.ndarray:
         """obs [B, F] with the gap vehicles replaced by the left-lane drivers predicted to move
