@@ -219,6 +219,11 @@ def _print_evaluation(ev: dict) -> None:
         f"mean merge time {ev['mean_merge_time_s']:.1f} s, "
         f"mean |acceleration| {ev['mean_abs_accel_mps2']:.2f} m/s^2"
     )
+    if ev.get("shield_changed_share") is not None:
+        print(
+            f"the shield changed {ev['shield_changed_share']:.1%} of the ego's "
+            f"{ev['shield_judged']:,} commands on the ramp"
+        )
     if "highway_hard_brake_share" in ev:
         print(
             "highway agents: own-fault collisions in "

@@ -178,6 +178,27 @@ def test_the_shield_counts_the_ramp_commands_it_judges_and_changes(cfg):
     assert shield.tally.since(before) == ShieldTally(judged=3, changed=2)
 
 
+def test_evaluate_counts_the_shields_changes_of_running_episodes_only(cfg):
+    """`evaluate` behind a shield: the ego's commands the shield judged on the ramp, per
+    episode, counted only while the episode runs (at most one a command), and the share it
+    changed."""
+    from marlmerge.evaluation.registry import policy_for_evaluation, policy_from_spec
+    from marlmerge.evaluation.rollout import run_episodes, summarize
+
+    control_s = cfg.sim.dt_s * cfg.sim.action_repeat
+    summaries = {}
+    for spec in ("gap@shield", "hold@shield"):
+        policy, scen = policy_for_evaluation(spec, cfg)
+        rec = run_episodes(policy, scen, episodes=24, seed=3, worlds=8)
+        steps = np.round(rec["time_s"] / control_s) + 1  # commands each episode was given
+        assert np.all(rec["shield_judged"] > 0) and np.all(rec["shield_judged"] <= steps)
+        summaries[spec] = summarize(rec)
+    assert summaries["gap@shield"]["shield_changed_share"] < 0.05
+    assert summaries["hold@shield"]["shield_changed_share"] > 0.05
+    bare = summarize(run_episodes(policy_from_spec("gap", cfg), cfg, episodes=8, seed=3, worlds=8))
+    assert "shield_judged" not in bare and "shield_changed_share" not in bare
+
+
 def test_a_shielded_policy_never_collides_where_the_bare_one_does(cfg):
     """A reckless merger (full throttle on the ramp, IDM in the lane) collides in dense
     traffic; behind the shield the same vehicle does not, over the same roads."""

@@ -16,6 +16,7 @@ import torch
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder, wilson_interval
 from marlmerge.evaluation.plausibility import HighwayTally, summarize_highway
+from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.sim import (
     EGO,
     OUTCOME_COLLISION,
@@ -107,11 +108,14 @@ def rollout_first_egos(
             env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
         tally = None if highway_policy is None else HighwayTally(scenario, nw)
         weights = None if proposal is None else WeightTally(env.core, nw)
+        shields = shield_count(policy, nw)
         outcome = np.zeros(nw, dtype=np.int64)
         interventions = np.zeros(nw, dtype=np.int64)
         time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
         while (outcome == 0).any():
             action = policy(td.get("observation")).reshape(nw, -1)  # [B, A]
+            if shields is not None:
+                shields.add(outcome == 0)
             td.set("action", action)
             if highway_policy is not None:
                 td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
@@ -141,10 +145,36 @@ def rollout_first_egos(
         rec["filter_interventions"].append(interventions)
         extra = {} if tally is None else tally.records()
         extra |= {} if weights is None else weights.records()
+        extra |= {} if shields is None else shields.records()
         for key, values in extra.items():
             rec.setdefault(key, []).append(values)
         traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
+
+
+class ShieldCount:
+    """Per episode, the ego's commands that the policy's shield (`policy.shield`, a `GapShield`
+    as `@shield` builds it) judged on the ramp and changed, counted while the episode runs."""
+
+    def __init__(self, shield: GapShield, n: int):
+        self.tally = shield.tally
+        self.judged = np.zeros(n, dtype=np.int64)
+        self.changed = np.zeros(n, dtype=np.int64)
+
+    def add(self, running: np.ndarray) -> None:
+        """After a call of the policy on all n worlds: count the rows of running episodes."""
+        assert self.tally.last_judged is not None and self.tally.last_changed is not None
+        self.judged += running & self.tally.last_judged.reshape(-1)
+        self.changed += running & self.tally.last_changed.reshape(-1)
+
+    def records(self) -> dict[str, np.ndarray]:
+        return {"shield_judged": self.judged, "shield_changed": self.changed}
+
+
+def shield_count(policy: EgoPolicy, n: int) -> ShieldCount | None:
+    """A `ShieldCount` for a policy behind gap acceptance's shield, else None."""
+    shield = getattr(policy, "shield", None)
+    return ShieldCount(shield, n) if isinstance(shield, GapShield) else None
 
 
 class WeightTally:
@@ -210,7 +240,18 @@ def summarize(rec: dict[str, np.ndarray]) -> dict[str, float]:
         "mean_total_reward": float(np.mean(rec["reward"])),
         "background_collisions_per_episode": float(np.mean(rec["background_collisions"])),
         **summarize_highway(rec),
+        **summarize_shield(rec),
     }
+
+
+def summarize_shield(rec: dict[str, np.ndarray]) -> dict[str, float | int | None]:
+    """Behind a shield (`ShieldCount`): the ego's commands it judged on the ramp and the share
+    it changed (None with none judged); nothing without one."""
+    if "shield_judged" not in rec:
+        return {}
+    judged = int(rec["shield_judged"].sum())
+    changed = int(rec["shield_changed"].sum())
+    return {"shield_judged": judged, "shield_changed_share": changed / judged if judged else None}
 
 
 def evaluate_policy(

@@ -10,7 +10,7 @@ learned ego policy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -316,11 +316,18 @@ class ShieldTally:
 
     judged: int = 0
     changed: int = 0
+    last_judged: np.ndarray | None = field(default=None, compare=False, repr=False)
+    """[B, 1] the rows of the last call that were judged (a caller that knows which rows are
+    live counts per episode from these: `marlmerge.evaluation.rollout`)."""
+    last_changed: np.ndarray | None = field(default=None, compare=False, repr=False)
+    """[B, 1] ... and changed."""
 
     def add(self, on_ramp: np.ndarray, asked: np.ndarray, driven: np.ndarray) -> None:
         """Count one call: on_ramp, asked, driven [B, 1]."""
+        self.last_judged = on_ramp
+        self.last_changed = on_ramp & (np.abs(driven - asked) > CHANGED_MPS2)
         self.judged += int(on_ramp.sum())
-        self.changed += int((on_ramp & (np.abs(driven - asked) > CHANGED_MPS2)).sum())
+        self.changed += int(self.last_changed.sum())
 
     def since(self, before: ShieldTally) -> ShieldTally:
         """The counts after `before` (a copy taken earlier)."""
