@@ -120,6 +120,9 @@ def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
     if cfg.update_path != "compiled":  # compiled, one seed is one more compilation (~1 min cold)
         train_seeds(cfg, [3], tmp_path / "one", progress=False)
         _same_run(tmp_path / "one" / "seed_3", tmp_path / "single")
+    if cfg.shield != "none":  # evaluated behind its shield, which says how often it stepped in
+        evaluation = json.loads((tmp_path / "single" / "evaluation.json").read_text())
+        assert evaluation["shield_judged"] > 0 and evaluation["shield_changed_share"] is not None
     two = _read(tmp_path / "two" / "seed_0" / "egos.csv")
     assert two != _read(tmp_path / "two" / "seed_3" / "egos.csv")  # the seeds differ
     if "select.every_sim_steps" in algo:

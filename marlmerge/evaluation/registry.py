@@ -141,7 +141,7 @@ class ShieldedPolicy:
         self.policy, self.shield = policy, shield
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(self.shield(obs.numpy(), self.policy(obs).numpy()))
+        return torch.as_tensor(self.shield(obs.cpu().numpy(), self.policy(obs).cpu().numpy()))
 
 
 def scenario_for(spec: PolicySpec, run: str | None, condition: ScenarioConfig) -> ScenarioConfig:

@@ -47,7 +47,10 @@ def shielded(shield: GapShield | None, obs: Tensor, acted: dict[str, Tensor]) ->
 def behind_shield(
     policy: Callable[[Tensor], Tensor], shield: GapShield | None
 ) -> Callable[[Tensor], Tensor]:
-    """The greedy `policy` (obs [B, F] -> action [B, 1]) with its commands through `shield`."""
+    """The greedy `policy` (obs [B, F] -> action [B, 1]) with its commands through `shield`, as
+    the grid's `@shield` drives it (so its evaluation counts what the shield changed)."""
     if shield is None:
         return policy
-    return lambda obs: shielded(shield, obs, {"action": policy(obs)})["action"]
+    from marlmerge.evaluation.registry import ShieldedPolicy
+
+    return ShieldedPolicy(policy, shield)
