@@ -37,6 +37,7 @@ import torch
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.merge_metrics import MergeTally
 from marlmerge.evaluation.registry import ShieldedPolicy, policy_for_evaluation
+from marlmerge.policies.gap_acceptance import ShieldTally
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.state import Roster
 
@@ -287,13 +288,12 @@ def run_ramp_flow(
     _drive(core, drivers, n_steps, speeds, tally)
     after = _counters(core)
     result = _result(cfg, driver, worlds, n_steps * step_s, before, after, speeds, tally)
-    judged = changed = 0
-    for t, t0 in zip(shields, shields_before, strict=True):
-        judged, changed = judged + t.since(t0).judged, changed + t.since(t0).changed
+    window = [t.since(t0) for t, t0 in zip(shields, shields_before, strict=True)]
+    pooled = ShieldTally(sum(w.judged for w in window), sum(w.changed for w in window))
     return replace(
         result,
-        shield_judged=judged if shields else None,
-        shield_changed_share=changed / judged if judged else None,
+        shield_judged=pooled.judged if shields else None,
+        shield_changed_share=pooled.share,
         wall_s=time.perf_counter() - start,
     )
 

@@ -16,7 +16,7 @@ import torch
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder, wilson_interval
 from marlmerge.evaluation.plausibility import HighwayTally, summarize_highway
-from marlmerge.policies.gap_acceptance import GapShield
+from marlmerge.policies.gap_acceptance import GapShield, ShieldTally
 from marlmerge.sim import (
     EGO,
     OUTCOME_COLLISION,
@@ -249,9 +249,8 @@ def summarize_shield(rec: dict[str, np.ndarray]) -> dict[str, float | int | None
     it changed (None with none judged); nothing without one."""
     if "shield_judged" not in rec:
         return {}
-    judged = int(rec["shield_judged"].sum())
-    changed = int(rec["shield_changed"].sum())
-    return {"shield_judged": judged, "shield_changed_share": changed / judged if judged else None}
+    total = ShieldTally(int(rec["shield_judged"].sum()), int(rec["shield_changed"].sum()))
+    return {"shield_judged": total.judged, "shield_changed_share": total.share}
 
 
 def evaluate_policy(

@@ -329,6 +329,11 @@ class ShieldTally:
         self.judged += int(on_ramp.sum())
         self.changed += int(self.last_changed.sum())
 
+    @property
+    def share(self) -> float | None:
+        """The share of the judged commands that were changed (None with none judged)."""
+        return self.changed / self.judged if self.judged else None
+
     def since(self, before: ShieldTally) -> ShieldTally:
         """The counts after `before` (a copy taken earlier)."""
         return ShieldTally(self.judged - before.judged, self.changed - before.changed)
@@ -456,7 +461,7 @@ class GapShield:
             in_lane = joined(seen, self.cfg)[..., None]
             out = np.where(in_lane, np.minimum(out, self._cap(seen)), out)
         out = out.astype(np.float32)
-        self.tally.add(x < x_ov, a, out.astype(np.float64))
+        self.tally.add(x < x_ov, a, out)
         return out
 
     def _left_movers(self, obs: np.ndarray) -> np.ndarray:
