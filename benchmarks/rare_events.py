@@ -1,16 +1,18 @@
-"""Importance sampling against plain Monte Carlo, side by side, printed as JSON.
+"""Importance sampling and splitting against plain Monte Carlo, side by side, printed as JSON.
 
 For each pair (a policy as `marlmerge evaluate` names it, and a scenario preset), the same
-request runs twice through `marlmerge.evaluation.estimate`: plain Monte Carlo over
-`--mc-episodes` episodes, and importance sampling (cross-entropy rounds, then batches until the
-95 % half-width is `--rel-ci` times the rate, at most `--is-max-episodes`). Printed per pair:
-both rates and intervals, whether the intervals overlap (the unbiasedness check), the episodes
-each used, and the efficiency: the Monte Carlo episodes that importance sampling's interval
-would have needed (rate (1 - rate) / se^2), over the episodes it used, fitting rounds included.
+request runs through `marlmerge.evaluation.estimate`: plain Monte Carlo over `--mc-episodes`
+episodes, then each of `--methods`: importance sampling (`is`: cross-entropy rounds, then
+batches until the 95 % half-width is `--rel-ci` times the rate, at most `--is-max-episodes`)
+and splitting at the attention lapses (`split`, scenarios whose drivers lapse; at most
+`--is-max-episodes` trunks). Printed per pair: the rates and intervals, whether each interval
+overlaps Monte Carlo's (the unbiasedness check), the episodes each used, and the efficiency:
+the Monte Carlo episodes that the method's interval would have needed (rate (1 - rate) / se^2),
+over the episodes it simulated (fitting rounds and branches included).
 Every estimate is written to `--out` as it goes and reused by a rerun (resumable).
 
     python benchmarks/rare_events.py [--pair POLICY,SCENARIO ...] [--mc-episodes 1000000]
-        [--rel-ci 0.2] [--out runs/rare_events]
+        [--rel-ci 0.2] [--methods is,split] [--out runs/rare_events]
 """
 
 from __future__ import annotations
@@ -52,45 +54,56 @@ def estimate(pair: str, method: str, args: argparse.Namespace) -> dict:
         settings = EstimateSettings(method="mc", episodes=args.mc_episodes, seed=args.seed)
     else:
         settings = EstimateSettings(
-            method="is", rel_ci=args.rel_ci, max_episodes=args.is_max_episodes, seed=args.seed
+            method=method, rel_ci=args.rel_ci, max_episodes=args.is_max_episodes, seed=args.seed
         )
     folder = Path(args.out) / pair.replace("/", "_").replace(",", "__") / method
     return Estimator(policy, spec, cfg, settings, folder).run()
+
+
+REPORTED = (
+    "rate",
+    "ci95",
+    "events",
+    "episodes",
+    "fitting_episodes",
+    "ess",
+    "mean_weight",
+    "trusted",
+    "precise_enough",
+    "mc_equivalent_episodes",
+    "trunk_episodes",
+    "branch_episodes",
+    "replay_mismatches",
+)
 
 
 def compare(pair: str, args: argparse.Namespace) -> dict:
     start = time.perf_counter()
     mc = estimate(pair, "mc", args)
     mc_s = time.perf_counter() - start
-    imp = estimate(pair, "is", args)
-    is_s = time.perf_counter() - start - mc_s
-    overlap = mc["ci95"][0] <= imp["ci95"][1] and imp["ci95"][0] <= mc["ci95"][1]
-    return {
+    row: dict = {
         "pair": pair,
         "mc": {k: mc[k] for k in ("rate", "ci95", "events", "episodes")} | {"wall_s": mc_s},
-        "is": {
-            k: imp[k]
-            for k in (
-                "rate",
-                "ci95",
-                "events",
-                "episodes",
-                "fitting_episodes",
-                "ess",
-                "mean_weight",
-                "trusted",
-                "precise_enough",
-                "mc_equivalent_episodes",
-            )
-        }
-        | {"wall_s": is_s},
-        "intervals_overlap": bool(overlap),
-        "efficiency": imp["mc_equivalent_episodes"] / imp["episodes"],
-        "wall_ratio_per_episode_is_over_mc": (is_s / imp["episodes_run"])
-        / (mc_s / mc["episodes_run"])
-        if imp["episodes_run"] and mc["episodes_run"]
-        else None,
     }
+    lapses = resolve_config(pair.partition(",")[2]).driver.lapse_rate_per_h > 0
+    for method in args.methods.split(","):
+        if method == "split" and not lapses:
+            row[method] = None  # nothing to split without lapses
+            continue
+        t0 = time.perf_counter()
+        est = estimate(pair, method, args)
+        wall_s = time.perf_counter() - t0
+        overlap = mc["ci95"][0] <= est["ci95"][1] and est["ci95"][0] <= mc["ci95"][1]
+        row[method] = {k: est[k] for k in REPORTED if k in est} | {
+            "wall_s": wall_s,
+            "intervals_overlap": bool(overlap),
+            "efficiency": est["mc_equivalent_episodes"] / est["episodes"],
+            "wall_ratio_per_episode_over_mc": (wall_s / est["episodes_run"])
+            / (mc_s / mc["episodes_run"])
+            if est["episodes_run"] and mc["episodes_run"]
+            else None,
+        }
+    return row
 
 
 def main() -> None:
@@ -100,6 +113,7 @@ def main() -> None:
     p.add_argument("--rel-ci", type=float, default=0.2)
     p.add_argument("--is-max-episodes", type=int, default=200_000)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--methods", default="is,split", help="beside Monte Carlo, comma-separated")
     p.add_argument("--out", default="runs/rare_events")
     args = p.parse_args()
     for pair in args.pair or PAIRS:

@@ -374,11 +374,22 @@ def estimate_cmd(args: argparse.Namespace) -> int:
     print(
         f"{report['event']} rate of {args.policy} on {report['scenario']} ({report['method']}): "
         f"{report['rate']:.3g} [{lo:.3g}, {hi:.3g}] from {report['episodes']} episodes "
-        f"({report['fitting_episodes']} fitting the proposal), {report['events']} events, "
+        + (
+            f"({report['trunk_episodes']} trunks, {report['branch_episodes']} branches), "
+            if report["method"] == "split"
+            else f"({report['fitting_episodes']} fitting the proposal), "
+        )
+        + f"{report['events']} events, "
         f"ESS {report['ess']:.1f}, mean weight {report['mean_weight']:.3f}; Monte Carlo "
         f"would need {report['mc_equivalent_episodes']:.3g} episodes"
         + ("" if report["trusted"] else " (few effective events: not to be trusted)")
     )
+    if report.get("replay_mismatches"):
+        print(
+            f"warning: {report['replay_mismatches']} branches did not replay their trunk "
+            "(the policy's answers depend on the batch): the estimate may be off",
+            file=sys.stderr,
+        )
     keys = ("rate", "ci95", "episodes", "ess", "mc_equivalent_episodes", "method")
     print(json.dumps({k: report[k] for k in keys}))
     return 0
@@ -696,7 +707,13 @@ def build_parser() -> argparse.ArgumentParser:
     es = sub.add_parser("estimate", help="a policy's collision rate, with rare-event sampling")
     es.add_argument("policy", help="as evaluate takes it: hold, idm, gap, a run, gap@shield, ...")
     es.add_argument("--scenario", default=None, help="the traffic (default: the policy's own)")
-    es.add_argument("--method", choices=("is", "mc"), default="is")
+    es.add_argument(
+        "--method",
+        choices=("is", "mc", "split"),
+        default="is",
+        help="is: importance sampling; mc: plain Monte Carlo; split: branch at the attention "
+        "lapses that could close the ego's gap (scenarios with driver.lapse_rate_per_h > 0)",
+    )
     es.add_argument("--event", choices=("collision", "failure"), default="collision")
     es.add_argument(
         "--rel-ci",
@@ -704,7 +721,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="stop when the 95 %% half-width <= this x rate (default 0.2 unless --episodes)",
     )
-    es.add_argument("--episodes", type=_at_least(1), default=None, help="final episodes instead")
+    es.add_argument(
+        "--episodes",
+        type=_at_least(1),
+        default=None,
+        help="final episodes instead (split: trunks, each with its branches)",
+    )
     es.add_argument("--max-episodes", type=_at_least(1), default=2_000_000)
     es.add_argument("--seed", type=_at_least(0), default=0)
     es.add_argument("--worlds", type=_at_least(1), default=500, help="episodes run at once")

@@ -24,6 +24,10 @@ ratio of the proposal it was drawn under, a proposal fitted to the episodes befo
 every term has the rate as its expectation and their mean stays unbiased (the pooled adaptive
 importance-sampling estimator); the rounds' episodes are paid for anyway.
 
+`method="split"`: with attention lapses, the lapses that could close the ego's gap are split
+instead of tilted (`marlmerge.evaluation.splitting`): no fitting rounds; each batch runs its
+trunks and then their branches, and `episodes` counts both.
+
 Reported: the rate, its 95 % interval (normal, from the weighted sample's variance), the
 episodes used (fitting rounds included), the effective sample size of the event weights
 (sum y)^2 / sum y^2 with y = 1[event] w, the mean weight (1 in expectation: far from 1 flags a
@@ -52,6 +56,7 @@ import numpy as np
 
 from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.evaluation.metrics import Z_95, wilson_interval
+from marlmerge.evaluation.splitting import split_batch, split_estimate, split_proposal
 from marlmerge.io.files import load, save, write_text
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
 from marlmerge.sim.layout import lapse_step_probability
@@ -72,7 +77,7 @@ from marlmerge.sim.proposal import (
     natural_profiles,
 )
 
-METHODS = ("mc", "is")
+METHODS = ("mc", "is", "split")
 EVENTS = ("collision", "failure")
 """collision: the ramp vehicle collided; failure: collided or truncated (never merged)."""
 MIN_TRUSTED_ESS = 30.0
@@ -86,7 +91,7 @@ version is refused rather than resumed (1: before the field existed). Monte Carl
 natural draws in every version and stay valid."""
 STOP_KEYS = ("rel_ci", "episodes", "max_episodes")
 """Settings that only say when to stop: a rerun may change them and keep the batches."""
-STAGE_CE, STAGE_FINAL, STAGE_MC = 1, 2, 3
+STAGE_CE, STAGE_FINAL, STAGE_MC, STAGE_SPLIT = 1, 2, 3, 4
 MIN_LAPSE_EVENTS = 5
 """Events the rounds need (pooled) before they fit the lapse probabilities to them."""
 LAPSE_GRID = 48
@@ -118,7 +123,8 @@ class EstimateSettings:
     """Stop once the interval's half-width is at most this times the rate (with neither this nor
     `episodes` given: `DEFAULT_REL_CI`)."""
     episodes: int | None = None
-    """Final-stage episodes to run (instead of `rel_ci`)."""
+    """Final-stage episodes to run (instead of `rel_ci`); with `split`, trunks (each with its
+    branches)."""
     max_episodes: int = 2_000_000
     """Final-stage episodes at most, whatever `rel_ci` says."""
     seed: int = 0
@@ -421,6 +427,8 @@ class Estimator:
         }
         self.episodes_run = 0
         self.episodes_reused = 0
+        if settings.method == "split":
+            split_proposal(cfg)  # refuses a scenario without lapses before any work
 
     def check_request(self) -> None:
         """A new `out`, or one holding the same request (stopping rules aside)."""
@@ -431,7 +439,7 @@ class Estimator:
             return
         old = json.loads(path.read_text())
         # Monte Carlo draws naturally, as every version did: its batches stay valid
-        if self.settings.method == "is" and old.get("version", 1) != ESTIMATE_VERSION:
+        if self.settings.method != "mc" and old.get("version", 1) != ESTIMATE_VERSION:
             raise ValueError(
                 f"{self.out} holds batches of estimate version {old.get('version', 1)}, drawn "
                 f"as this one ({ESTIMATE_VERSION}) no longer draws them; use another --out or "
@@ -509,6 +517,41 @@ class Estimator:
                 break
         return proposal, rounds, batches
 
+    def split_batch(self, i: int, n: int) -> dict[str, np.ndarray]:
+        """Batch i of the splitting estimate: n trunks and their branches (read back if this
+        request ran it before with the same branch probabilities)."""
+        proposal = split_proposal(self.cfg)
+        drawn = json.dumps(proposal.to_dict(), sort_keys=True)
+        tag = hashlib.sha256(drawn.encode()).hexdigest()[:12]
+        path = self.out / "batches" / f"{STAGE_SPLIT}_{i}_{tag}.pt"
+        if path.exists():
+            data = load(path, "estimate batch")
+            self.episodes_reused += n + data["branch_of"].size
+            return data
+        s = self.settings
+        seeds = [np.random.SeedSequence(s.seed, spawn_key=(STAGE_SPLIT, i, e)) for e in range(n)]
+        data = split_batch(self.policy, self.cfg, seeds, s.worlds, s.event)
+        save(data, path)
+        self.episodes_run += n + data["branch_of"].size
+        return data
+
+    def final_split(self) -> tuple[dict[str, Any], int]:
+        """Splitting batches until precise enough (or the trunks asked): the estimate and the
+        episodes simulated, trunks and branches."""
+        s = self.settings
+        target = s.episodes if s.episodes is not None else s.max_episodes
+        parts: list[dict[str, np.ndarray]] = []
+        done, i = 0, 0
+        est: dict[str, Any] = {}
+        while done < target:
+            n = min(s.batch, target - done)
+            parts.append(self.split_batch(i, n))
+            done, i = done + n, i + 1
+            est = split_estimate(parts)
+            if s.episodes is None and precise_enough(est, s):
+                break
+        return est, est["trunk_episodes"] + est["branch_episodes"]
+
     def final(
         self,
         stage: int,
@@ -542,6 +585,9 @@ class Estimator:
         if s.method == "is":
             proposal, rounds, batches = self.fit()
             est, final_n = self.final(STAGE_FINAL, proposal, batches)
+        elif s.method == "split":
+            proposal = split_proposal(self.cfg)
+            est, final_n = self.final_split()
         else:
             est, final_n = self.final(STAGE_MC, None)
         fitting_n = sum(r["episodes"] for r in rounds)

@@ -55,6 +55,7 @@ def rollout_first_egos(
     road_seeds: Sequence[WorldSeed] | None = None,
     scenarios: Sequence[ScenarioConfig] | None = None,
     proposal: Proposal | None = None,
+    lapse_branches: Sequence[int] | None = None,
 ) -> tuple[dict[str, np.ndarray], list[dict[str, np.ndarray]]]:
     """Run the first ego of `episodes` fresh worlds to its end.
 
@@ -71,6 +72,8 @@ def rollout_first_egos(
     records add each episode's `log_weight` (log p/q of its draws when it ended), `draw_stats`
     [E, N_STATS] (what the proposal drew) and `min_gap_m` (the smallest bumper gap to the
     right-lane vehicles at the ego's position while it was in the merge zone or beyond).
+    `lapse_branches` (one per episode, with a proposal that splits lapses): the branch each
+    episode runs (`TrafficCore.set_lapse_branches`; -1: the trunk).
     """
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
@@ -94,6 +97,10 @@ def rollout_first_egos(
             env = BatchedMergeEnv(
                 scenario, num_worlds=nw, seed=seeds, scenarios=own, proposal=proposal
             )
+            if lapse_branches is not None:
+                env.core.set_lapse_branches(
+                    np.asarray(lapse_branches[g * worlds : g * worlds + nw], dtype=np.int64)
+                )
         elif scenarios is not None or proposal is not None:
             raise ValueError("scenarios, proposal: not with a highway policy")
         else:

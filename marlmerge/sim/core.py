@@ -139,6 +139,9 @@ class TrafficCore:
         """[B] the tag `scenario_source` gave each world's current traffic (-1: none)."""
         self.batch_size = batch_size
         self.proposal = proposal
+        self.lapse_branch = np.full(batch_size, -1, dtype=np.int64)
+        """[B] with lapse splitting (`Proposal.lapse_split`): the branch each world runs (-1:
+        the trunk; `set_lapse_branches`)."""
         self.params = np.tile(self._pack(cfg), (batch_size, 1))  # [B, P]: each world's parameters
         self.v_limit = cfg.road.speed_limit_mps
         self.ego_features = ego_features(cfg)
@@ -364,6 +367,24 @@ class TrafficCore:
     def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:
         self.streams.cfgs[b] = cfg
         self.params[b] = self._pack(cfg)
+        self.params[b, L.P_LAPSE_FORCE] = self.lapse_branch[b]
+
+    def set_lapse_branches(self, branch: Sequence[int] | np.ndarray) -> None:
+        """With lapse splitting: world b runs branch `branch[b]` of its road from now on (-1:
+        the trunk, j >= 0: the lapse begins at the j-th branch point; `marlmerge.sim.lapses`).
+        Set it before the ego reaches the merge zone; the branch replays the road of the same
+        seed."""
+        if self.proposal is None or self.proposal.lapse_split is None:
+            raise ValueError("set_lapse_branches: the core has no proposal with lapse_split")
+        branch = np.asarray(branch)
+        if branch.shape != (self.batch_size,) or not np.issubdtype(branch.dtype, np.integer):
+            raise ValueError(
+                f"set_lapse_branches: one integer per world ({self.batch_size}), got {branch!r}"
+            )
+        if np.any(branch < -1):
+            raise ValueError(f"set_lapse_branches: branches are -1 or >= 0, got {branch.min()}")
+        self.lapse_branch[:] = branch
+        self.params[:, L.P_LAPSE_FORCE] = branch
 
     def _pack(self, cfg: ScenarioConfig) -> np.ndarray:
         """A world's parameters (`layout.pack_params`), with the proposal's lapse probability
@@ -371,6 +392,9 @@ class TrafficCore:
         row = L.pack_params(cfg)
         if self.proposal is not None and self.proposal.lapse_p is not None:
             row[L.P_LAPSE_Q : L.P_LAPSE_Q + L.N_LAPSE_CLASSES] = self.proposal.lapse_p
+        if self.proposal is not None and self.proposal.lapse_split is not None:
+            row[L.P_LAPSE_SPLIT] = 1.0
+            row[L.P_LAPSE_R : L.P_LAPSE_R + L.N_LAPSE_CLASSES] = self.proposal.lapse_split
         return row
 
     def world_scenario(self, b: int) -> ScenarioConfig:

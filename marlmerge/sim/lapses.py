@@ -17,6 +17,18 @@ a second, needless lapse. The world keeps the exact log p/q_c of each tilted dra
 depends on the past draws only is still exact) with the per-class counts q_c is refitted from
 (`WF_LAPSE_STEPS + c`, `WF_LAPSE_N + c`). Without a proposal q_c = p and every ratio is
 exactly 1.
+
+Splitting (`marlmerge.evaluation.splitting`, `P_LAPSE_SPLIT`): the same critical steps become
+branch points instead of tilted draws. In the **trunk** (`P_LAPSE_FORCE` = -1) the driver behind
+the ego's gap never begins a lapse at a critical step (weight 1 - p each); a critical step of
+class c is a **branch point** when a second hash of the same key, step and vehicle falls below
+r_c (`P_LAPSE_R + c`), and `WF_LAPSE_N + c` counts the branch points passed. **Branch** j
+(`P_LAPSE_FORCE` = j) replays the same world, seeded alike, so it passes the same steps; at its
+j-th branch point the driver begins the lapse, with weight p / r_c, and every draw after that is
+natural. Summed over the trunk and its branches, the weighted outcomes have the natural rate as
+their expectation: each lapse the trunk leaves out is run in a branch with probability r_c and
+counted 1 / r_c times. `WF_LAPSE_STEPS + c` counts the critical steps, `WF_LAPSE_LOGW` keeps
+the weight's log as above.
 """
 
 from __future__ import annotations
@@ -31,8 +43,11 @@ from marlmerge.sim.layout import (
     N_LAPSE_CLASSES,
     OUTCOME_NONE,
     P_DT,
+    P_LAPSE_FORCE,
     P_LAPSE_P,
     P_LAPSE_Q,
+    P_LAPSE_R,
+    P_LAPSE_SPLIT,
     P_LAPSE_STEPS,
     P_LEN,
     P_X_ZONE_START,
@@ -131,6 +146,44 @@ def _tilted_lapse_begun(wf: np.ndarray, b: int) -> bool:
     return False
 
 
+BRANCH_SALT = 0x2545F491
+"""Mixed into the lapse key for the branch-point draw: independent of the lapse draws."""
+
+
+@kernel(inline=True)
+def _branch_points(wf: np.ndarray, b: int) -> float:
+    n = 0.0
+    for c in range(N_LAPSE_CLASSES):
+        n += wf[b, WF_LAPSE_N + c]
+    return n
+
+
+@kernel(inline=True)
+def _split_lapse_begun(wf: np.ndarray, b: int, p: np.ndarray) -> bool:
+    """A branch has begun its forced lapse (the trunk never does)."""
+    force = p[P_LAPSE_FORCE]
+    return force >= 0.0 and _branch_points(wf, b) > force
+
+
+@kernel(inline=True)
+def _split_draw(S: tuple, b: int, p: np.ndarray, s: int, c: int) -> bool:
+    """A critical step of class `c` under splitting (see the module docstring): the lapse
+    begins only at a branch's own branch point."""
+    vf, vi, wf, wi, lanes, sched = S
+    p_nat = p[P_LAPSE_P]
+    wf[b, WF_LAPSE_STEPS + c] += 1.0
+    r = p[P_LAPSE_R + c]
+    u = lapse_uniform(wi[b, WI_LAPSE_KEY] ^ BRANCH_SALT, wi[b, WI_STEPS], vi[b, VI_ID, s])
+    here = _branch_points(wf, b)
+    if u < r:
+        wf[b, WF_LAPSE_N + c] += 1.0
+        if here == p[P_LAPSE_FORCE]:
+            wf[b, WF_LAPSE_LOGW] += math.log(p_nat / r)
+            return True
+    wf[b, WF_LAPSE_LOGW] += math.log1p(-p_nat)
+    return False
+
+
 @kernel(inline=True)
 def lapsing(S: tuple, b: int, p: np.ndarray, s: int, critical: bool) -> bool:
     """Whether the driver in slot `s` lapses in this step (beginning one, or going on with
@@ -141,7 +194,14 @@ def lapsing(S: tuple, b: int, p: np.ndarray, s: int, critical: bool) -> bool:
         vf[b, VF_LAPSE, s] = left - 1.0
         return True
     p_nat = p[P_LAPSE_P]
-    c = lapse_class(S, b, p, s) if critical and not _tilted_lapse_begun(wf, b) else -1
+    split = p[P_LAPSE_SPLIT] > 0.0
+    begun = _split_lapse_begun(wf, b, p) if split else _tilted_lapse_begun(wf, b)
+    c = lapse_class(S, b, p, s) if critical and not begun else -1
+    if split and c >= 0:
+        lapse = _split_draw(S, b, p, s, c)
+        if lapse:
+            vf[b, VF_LAPSE, s] = p[P_LAPSE_STEPS] - 1.0
+        return lapse
     q = p[P_LAPSE_Q + c] if c >= 0 else p_nat
     lapse = lapse_uniform(wi[b, WI_LAPSE_KEY], wi[b, WI_STEPS], vi[b, VI_ID, s]) < q
     if c >= 0:

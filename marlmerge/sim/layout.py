@@ -328,6 +328,12 @@ _PARAMS = (
     "lapse_q_2",
     "lapse_q_3",
     "lapse_steps",
+    "lapse_split",
+    "lapse_r",
+    "lapse_r_1",
+    "lapse_r_2",
+    "lapse_r_3",
+    "lapse_force",
 )
 (
     P_DT,
@@ -422,6 +428,12 @@ _PARAMS = (
     P_LAPSE_Q_2,
     P_LAPSE_Q_3,
     P_LAPSE_STEPS,
+    P_LAPSE_SPLIT,
+    P_LAPSE_R,
+    P_LAPSE_R_1,
+    P_LAPSE_R_2,
+    P_LAPSE_R_3,
+    P_LAPSE_FORCE,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -549,4 +561,11 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "lapse_q_2": p_lapse,
         "lapse_q_3": p_lapse,
         "lapse_steps": float(max(round(cfg.driver.lapse_s / cfg.sim.dt_s), 1)),
+        # lapse splitting (`marlmerge.sim.lapses`): off here; the core sets it per world
+        "lapse_split": 0.0,
+        "lapse_r": 1.0,
+        "lapse_r_1": 1.0,
+        "lapse_r_2": 1.0,
+        "lapse_r_3": 1.0,
+        "lapse_force": -1.0,
     }

@@ -20,7 +20,10 @@ What is tilted (everything else is drawn as without a proposal):
   ego's gap** while the ego runs in the merge zone: each step it begins one with probability
   `lapse_p[c]` instead of the natural p, by how soon a lapse could close its gap to the ego
   (`marlmerge.sim.lapses.lapse_class`), until the first such lapse; drawn and weighed in the
-  kernel.
+  kernel;
+- or, in place of that tilt, **splitting** of the same lapses (`lapse_split`): the trunk runs
+  without them and a branch replays the world with one of them begun (`marlmerge.sim.lapses`,
+  `marlmerge.evaluation.splitting`).
 
 The road filled at a reset and everything after the window are drawn naturally. The weights are
 exact for each draw (closed forms below); `stats` keeps the sufficient statistics of the tilted
@@ -80,6 +83,10 @@ class Proposal:
     """Per-step probabilities that the driver behind the ego's gap begins an attention lapse
     while the ego runs in the merge zone, one per `lapse_class` (by how soon a lapse could
     close its gap to the ego); None: the scenario's own."""
+    lapse_split: tuple[float, ...] | None = None
+    """Per `lapse_class`: the probability that a critical step of that class is a branch
+    point, where a branch replays the world with the lapse begun (`marlmerge.sim.lapses`);
+    None: no splitting. Not with `lapse_p`."""
 
     def __post_init__(self) -> None:
         t0, t1 = self.window_s
@@ -109,6 +116,19 @@ class Proposal:
                 f"got {self.lapse_p}"
             )
 
+        if self.lapse_split is not None:
+            if self.lapse_p is not None:
+                raise ValueError(
+                    "proposal: lapse_p tilts the lapses that lapse_split splits; not both"
+                )
+            if len(self.lapse_split) != N_LAPSE_CLASSES or not all(
+                0.0 < r <= 1.0 for r in self.lapse_split
+            ):
+                raise ValueError(
+                    f"proposal lapse_split must be {N_LAPSE_CLASSES} probabilities in (0, 1], "
+                    f"got {self.lapse_split}"
+                )
+
     @classmethod
     def natural(cls, cfg: ScenarioConfig, window_s: tuple[float, float] | None = None) -> Proposal:
         """The scenario's own distribution written as a proposal (every weight is 1)."""
@@ -117,8 +137,9 @@ class Proposal:
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
-        if self.lapse_p is None:  # as written before lapses existed (estimate batches' names)
-            del data["lapse_p"]
+        for key in ("lapse_p", "lapse_split"):  # as written before these existed (batch names)
+            if data[key] is None:
+                del data[key]
         return data
 
     @classmethod
@@ -129,16 +150,18 @@ class Proposal:
             gap_scale=tuple(data["gap_scale"]),  # type: ignore[arg-type]
             beta=tuple(tuple(ab) for ab in data["beta"]),  # type: ignore[arg-type]
             lapse_p=None if data.get("lapse_p") is None else tuple(data["lapse_p"]),
+            lapse_split=None if data.get("lapse_split") is None else tuple(data["lapse_split"]),
         )
 
     def check(self, cfg: ScenarioConfig) -> None:
         """The proposal draws every profile the scenario can (else the estimate is biased); with
         `[sample]` (each world its own mix) every profile."""
-        if self.lapse_p is not None and cfg.driver.lapse_rate_per_h <= 0.0:
-            raise ValueError(
-                f"proposal lapse_p = {self.lapse_p}: the scenario's drivers never lapse "
-                "(driver.lapse_rate_per_h = 0)"
-            )
+        for key in ("lapse_p", "lapse_split"):
+            if getattr(self, key) is not None and cfg.driver.lapse_rate_per_h <= 0.0:
+                raise ValueError(
+                    f"proposal {key} = {getattr(self, key)}: the scenario's drivers never lapse "
+                    "(driver.lapse_rate_per_h = 0)"
+                )
         p = natural_profiles(cfg)
         for lane, probs in enumerate(self.profile_p):
             for k, (nat, q) in enumerate(zip(p, probs, strict=True)):
