@@ -36,13 +36,15 @@ PAIRS = (
     "gap,lapses_heldout2",
     "gap,lapses_heldout3",
     "gap,lapses_heldout4",
+    "gap,lapses_heldout5",
+    "gap,lapses_heldout6",
     "gap,lapses_rare",
 )
 """Rule policies (nothing to train): rates near 1e-2, 3e-4 and lower on the grid's roads, where
 collisions come from how the drawn drivers line up; near 1e-3 to 1e-5 with drivers who lapse
-(`envs/lapses*.toml`; the four `lapses_heldout*` drawn from fixed seeds, each committed before
+(`envs/lapses*.toml`; the six `lapses_heldout*` drawn from fixed seeds, each committed before
 the change of the estimator it first checked), where they come from lapses the proposal can aim
-at."""
+at and splitting can branch on."""
 
 
 def estimate(pair: str, method: str, args: argparse.Namespace) -> dict:
