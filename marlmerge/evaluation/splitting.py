@@ -2,7 +2,7 @@
 
 Where a collision needs a lapse of the driver behind the ego's gap (`driver.lapse_rate_per_h`),
 the rate is a sum over the step at which that lapse begins. Splitting runs that sum instead of
-sampling it (conditional Monte Carlo over the lapse's start; Glasserman 2004, ch. 4.2):
+sampling it (conditional Monte Carlo over the lapse's start, its terms subsampled):
 
 - the **trunk** of an episode is its road with that driver never beginning a lapse at a
   critical step (`marlmerge.sim.lapses`), each such step weighing 1 - p;
