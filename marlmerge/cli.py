@@ -369,6 +369,12 @@ def estimate_cmd(args: argparse.Namespace) -> int:
 
     policy, scen = policy_for_evaluation(args.policy, scen)
     _note_bare_shield(args.policy)
+    if settings.method == "is" and scen.driver.lapse_rate_per_h > 0:
+        print(
+            f"note: {scen.name}'s drivers lapse; --method split usually needs several times "
+            "fewer episodes for the same interval there (docs/evaluation.md)",
+            file=sys.stderr,
+        )
     report = Estimator(policy, args.policy, scen, settings, args.out).run()
     lo, hi = report["ci95"]
     print(

@@ -121,3 +121,14 @@ def test_split_estimate_resumes_bit_for_bit_and_prints_its_cost(tmp_path, capsys
     assert "trunks" in lines[-2] and "branches" in lines[-2]
     last_line = json.loads(lines[-1])
     assert last_line["method"] == "split" and last_line["episodes"] >= 40
+
+
+def test_importance_sampling_on_lapsing_drivers_points_to_splitting(tmp_path, capsys):
+    argv = ["estimate", "gap", "--scenario", "lapses", "--episodes", "20", "--rounds", "1"]
+    argv += ["--round-episodes", "20", "--worlds", "20", "--out", str(tmp_path / "is")]
+    assert main(argv) == 0
+    assert "--method split usually needs several times fewer" in capsys.readouterr().err
+    argv[3] = "grid_moderate_neutral"  # importance sampling again, on drivers who never lapse
+    argv[-1] = str(tmp_path / "is_no_lapses")
+    assert main(argv) == 0
+    assert "--method split" not in capsys.readouterr().err
