@@ -48,6 +48,7 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -55,10 +56,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from marlmerge.config import ScenarioConfig, to_dict
-from marlmerge.evaluation.metrics import Z_95, wilson_interval
+from marlmerge.evaluation.metrics import event_mask, weighted_mean_estimate, wilson_interval
 from marlmerge.evaluation.splitting import split_batch, split_estimate, split_proposal
 from marlmerge.io.files import load, save, write_text
-from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
 from marlmerge.sim.layout import lapse_step_probability
 from marlmerge.sim.proposal import (
     BETA_RANGE,
@@ -173,23 +173,11 @@ class EstimateSettings:
 def weighted_estimate(event: np.ndarray, log_w: np.ndarray) -> dict[str, Any]:
     """The importance-sampling estimate of P(event) from episodes drawn under a proposal:
     rate, 95 % interval, ESS of the event weights, mean weight, MC-equivalent episodes."""
-    n = event.size
     w = np.exp(log_w)
     y = np.where(event, w, 0.0)
-    rate = float(np.mean(y))
-    se = float(np.std(y, ddof=1) / math.sqrt(n)) if n > 1 else math.nan
-    sum_y2 = float(np.sum(y * y))
-    ess = float(np.sum(y) ** 2 / sum_y2) if sum_y2 > 0 else 0.0
-    mc_eq = rate * (1.0 - rate) / se**2 if se > 0 else math.nan
-    return {
-        "rate": rate,
-        "ci95": [max(rate - Z_95 * se, 0.0), rate + Z_95 * se] if n > 1 else [math.nan] * 2,
-        "se": se,
+    return weighted_mean_estimate(y, y) | {
         "events": int(np.count_nonzero(event)),
-        "ess": ess,
         "mean_weight": float(np.mean(w)),
-        "max_weight_share": float(np.max(y) / np.sum(y)) if np.sum(y) > 0 else math.nan,
-        "mc_equivalent_episodes": mc_eq,
     }
 
 
@@ -207,6 +195,17 @@ def mc_estimate(event: np.ndarray) -> dict[str, Any]:
         "max_weight_share": 1.0 / k if k else math.nan,
         "mc_equivalent_episodes": float(n),
     }
+
+
+def _pooled_weighted(parts: list[dict[str, np.ndarray]]) -> dict[str, Any]:
+    return weighted_estimate(
+        np.concatenate([p["event"] for p in parts]),
+        np.concatenate([p["log_weight"] for p in parts]),
+    )
+
+
+def _pooled_mc(parts: list[dict[str, np.ndarray]]) -> dict[str, Any]:
+    return mc_estimate(np.concatenate([p["event"] for p in parts]))
 
 
 def precise_enough(est: dict[str, Any], settings: EstimateSettings) -> bool:
@@ -427,8 +426,8 @@ class Estimator:
         }
         self.episodes_run = 0
         self.episodes_reused = 0
-        if settings.method == "split":
-            split_proposal(cfg)  # refuses a scenario without lapses before any work
+        self.split = split_proposal(cfg) if settings.method == "split" else None
+        """The splitting proposal (refused for a scenario without lapses before any work)."""
 
     def check_request(self) -> None:
         """A new `out`, or one holding the same request (stopping rules aside)."""
@@ -459,14 +458,18 @@ class Estimator:
                 )
         self.out.joinpath("batches").mkdir(parents=True, exist_ok=True)
 
+    def _batch_path(self, spawn: tuple[int, int], proposal: Proposal | None) -> Path:
+        """Where a batch is kept: named by its stage and index and by what it was drawn under."""
+        drawn = "mc" if proposal is None else json.dumps(proposal.to_dict(), sort_keys=True)
+        tag = hashlib.sha256(drawn.encode()).hexdigest()[:12]
+        return self.out / "batches" / f"{spawn[0]}_{spawn[1]}_{tag}.pt"
+
     def batch(
         self, spawn: tuple[int, int], n: int, proposal: Proposal | None
     ) -> dict[str, np.ndarray]:
         """The episodes of one batch (read back if this request ran it before, under the same
         proposal: the file is named by both)."""
-        drawn = "mc" if proposal is None else json.dumps(proposal.to_dict(), sort_keys=True)
-        tag = hashlib.sha256(drawn.encode()).hexdigest()[:12]
-        path = self.out / "batches" / f"{spawn[0]}_{spawn[1]}_{tag}.pt"
+        path = self._batch_path(spawn, proposal)
         if path.exists():
             self.episodes_reused += n
             return _filled(load(path, "estimate batch"), n)
@@ -477,11 +480,9 @@ class Estimator:
         rec, _ = rollout_first_egos(
             self.policy, self.cfg, n, 0, s.worlds, road_seeds=seeds, proposal=proposal
         )
-        outcome = rec["outcome"]
-        event = outcome == OUTCOME_COLLISION
-        if s.event == "failure":
-            event |= outcome == OUTCOME_TRUNCATED
-        data = {"event": event} | {k: rec[k] for k in WEIGHT_KEYS if k in rec}
+        data = {"event": event_mask(rec["outcome"], s.event)} | {
+            k: rec[k] for k in WEIGHT_KEYS if k in rec
+        }
         save(data, path)  # Monte Carlo batches keep only their events
         self.episodes_run += n
         return _filled(data, n)
@@ -520,10 +521,8 @@ class Estimator:
     def split_batch(self, i: int, n: int) -> dict[str, np.ndarray]:
         """Batch i of the splitting estimate: n trunks and their branches (read back if this
         request ran it before with the same branch probabilities)."""
-        proposal = split_proposal(self.cfg)
-        drawn = json.dumps(proposal.to_dict(), sort_keys=True)
-        tag = hashlib.sha256(drawn.encode()).hexdigest()[:12]
-        path = self.out / "batches" / f"{STAGE_SPLIT}_{i}_{tag}.pt"
+        assert self.split is not None
+        path = self._batch_path((STAGE_SPLIT, i), self.split)
         if path.exists():
             data = load(path, "estimate batch")
             self.episodes_reused += n + data["branch_of"].size
@@ -535,31 +534,15 @@ class Estimator:
         self.episodes_run += n + data["branch_of"].size
         return data
 
-    def final_split(self) -> tuple[dict[str, Any], int]:
-        """Splitting batches until precise enough (or the trunks asked): the estimate and the
-        episodes simulated, trunks and branches."""
-        s = self.settings
-        target = s.episodes if s.episodes is not None else s.max_episodes
-        parts: list[dict[str, np.ndarray]] = []
-        done, i = 0, 0
-        est: dict[str, Any] = {}
-        while done < target:
-            n = min(s.batch, target - done)
-            parts.append(self.split_batch(i, n))
-            done, i = done + n, i + 1
-            est = split_estimate(parts)
-            if s.episodes is None and precise_enough(est, s):
-                break
-        return est, est["trunk_episodes"] + est["branch_episodes"]
-
     def final(
         self,
-        stage: int,
-        proposal: Proposal | None,
+        draw: Callable[[int, int], dict[str, np.ndarray]],
+        estimate: Callable[[list[dict[str, np.ndarray]]], dict[str, Any]],
         rounds: list[dict[str, np.ndarray]] | None = None,
     ) -> tuple[dict[str, Any], int]:
-        """Batches until precise enough (or the episodes asked): the estimate, pooled with the
-        `rounds`' episodes, and the final stage's episodes."""
+        """Batches `draw(i, n)` until precise enough (or the episodes asked): the estimate of
+        them pooled with the `rounds`' episodes, and the final stage's episodes asked (with
+        splitting: trunks)."""
         s = self.settings
         target = s.episodes if s.episodes is not None else s.max_episodes
         parts: list[dict[str, np.ndarray]] = list(rounds or [])
@@ -567,11 +550,9 @@ class Estimator:
         est: dict[str, Any] = {}
         while done < target:
             n = min(s.batch, target - done)
-            parts.append(self.batch((stage, i), n, proposal))
+            parts.append(draw(i, n))
             done, i = done + n, i + 1
-            event = np.concatenate([p["event"] for p in parts])
-            log_w = np.concatenate([p["log_weight"] for p in parts])
-            est = mc_estimate(event) if proposal is None else weighted_estimate(event, log_w)
+            est = estimate(parts)
             if s.episodes is None and precise_enough(est, s):
                 break
         return est, done
@@ -584,12 +565,15 @@ class Estimator:
         proposal = None
         if s.method == "is":
             proposal, rounds, batches = self.fit()
-            est, final_n = self.final(STAGE_FINAL, proposal, batches)
+            est, final_n = self.final(
+                lambda i, n: self.batch((STAGE_FINAL, i), n, proposal), _pooled_weighted, batches
+            )
         elif s.method == "split":
-            proposal = split_proposal(self.cfg)
-            est, final_n = self.final_split()
+            proposal = self.split
+            est, _ = self.final(self.split_batch, split_estimate)
+            final_n = est["trunk_episodes"] + est["branch_episodes"]
         else:
-            est, final_n = self.final(STAGE_MC, None)
+            est, final_n = self.final(lambda i, n: self.batch((STAGE_MC, i), n, None), _pooled_mc)
         fitting_n = sum(r["episodes"] for r in rounds)
         report = {
             "policy": self.request["policy"],

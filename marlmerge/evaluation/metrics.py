@@ -192,6 +192,32 @@ def wilson_interval(successes: float, n: int, z: float = Z_95) -> tuple[float, f
     return (lo, hi)
 
 
+def event_mask(outcome: np.ndarray, event: str) -> np.ndarray:
+    """[E] the episodes whose outcome is the `event`: "collision", or "failure" (collided or
+    truncated: never merged)."""
+    hit = outcome == OUTCOME_COLLISION
+    return hit | (outcome == OUTCOME_TRUNCATED) if event == "failure" else hit
+
+
+def weighted_mean_estimate(z: np.ndarray, y: np.ndarray) -> dict[str, float | list[float]]:
+    """A rate estimated as the mean of independent per-episode values z [E] (weighted events):
+    the rate, its normal 95 % interval and standard error, the effective number of events of
+    the weighted events y [M] ((sum y)^2 / sum y^2), the largest episode's share of the sum,
+    and the Monte Carlo episodes the same interval would need, rate (1 - rate) / se^2."""
+    n = z.size
+    rate = float(np.mean(z))
+    se = float(np.std(z, ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+    sum_y2 = float(np.sum(y * y))
+    return {
+        "rate": rate,
+        "ci95": [max(rate - Z_95 * se, 0.0), rate + Z_95 * se] if n > 1 else [math.nan] * 2,
+        "se": se,
+        "ess": float(np.sum(y) ** 2 / sum_y2) if sum_y2 > 0 else 0.0,
+        "max_weight_share": float(np.max(z) / np.sum(z)) if np.sum(z) > 0 else math.nan,
+        "mc_equivalent_episodes": rate * (1.0 - rate) / se**2 if se > 0 else math.nan,
+    }
+
+
 def aggregate(values: np.ndarray, kind: str) -> tuple[float, float, float]:
     """(mean, ci_low, ci_high) of one metric over episodes, a 95 % interval. `values`: [n].
 

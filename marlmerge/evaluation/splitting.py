@@ -30,15 +30,13 @@ Traffic that needs no lapse to collide is in the trunk with weight near 1, as in
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.metrics import Z_95
-from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
+from marlmerge.evaluation.metrics import event_mask, weighted_mean_estimate
 from marlmerge.sim.layout import N_LAPSE_CLASSES
 from marlmerge.sim.proposal import ST_LAPSE_N, Proposal
 
@@ -61,11 +59,6 @@ def split_proposal(cfg: ScenarioConfig) -> Proposal:
             "(driver.lapse_rate_per_h = 0), so there is nothing to split; use --method is or mc"
         )
     return replace(Proposal.natural(cfg), lapse_split=BRANCH_P)
-
-
-def _events(outcome: np.ndarray, event: str) -> np.ndarray:
-    hit = outcome == OUTCOME_COLLISION
-    return hit | (outcome == OUTCOME_TRUNCATED) if event == "failure" else hit
 
 
 def _branch_points(draw_stats: np.ndarray) -> np.ndarray:
@@ -94,7 +87,7 @@ def split_batch(
     of = np.repeat(np.arange(n), points)  # [M] the episode of each branch
     j = np.arange(of.size) - np.repeat(np.cumsum(points) - points, points)  # [M] its point
     data = {
-        "event": _events(trunk["outcome"], event),
+        "event": event_mask(trunk["outcome"], event),
         "log_weight": trunk["log_weight"],
         "branch_of": of,
         "branch_event": np.zeros(of.size, dtype=bool),
@@ -112,7 +105,7 @@ def split_batch(
             proposal=proposal,
             lapse_branches=j.tolist(),
         )
-        data["branch_event"] = _events(branch["outcome"], event)
+        data["branch_event"] = event_mask(branch["outcome"], event)
         data["branch_log_weight"] = branch["log_weight"]
         data["branch_replayed"] = _branch_points(branch["draw_stats"]) == j + 1
     return data
@@ -136,21 +129,10 @@ def split_estimate(parts: list[dict[str, np.ndarray]]) -> dict[str, Any]:
         [np.where(p["event"], np.exp(p["log_weight"]), 0.0) for p in parts]
         + [np.where(p["branch_event"], np.exp(p["branch_log_weight"]), 0.0) for p in parts]
     )  # every leaf's weighted event
-    n = z.size
-    branches = sum(p["branch_of"].size for p in parts)
-    rate = float(np.mean(z))
-    se = float(np.std(z, ddof=1) / math.sqrt(n)) if n > 1 else math.nan
-    sum_y2 = float(np.sum(y * y))
-    return {
-        "rate": rate,
-        "ci95": [max(rate - Z_95 * se, 0.0), rate + Z_95 * se] if n > 1 else [math.nan] * 2,
-        "se": se,
+    return weighted_mean_estimate(z, y) | {
         "events": int(np.count_nonzero(y)),
-        "ess": float(np.sum(y) ** 2 / sum_y2) if sum_y2 > 0 else 0.0,
         "mean_weight": float(np.mean(w)),
-        "max_weight_share": float(np.max(z) / np.sum(z)) if np.sum(z) > 0 else math.nan,
-        "mc_equivalent_episodes": rate * (1.0 - rate) / se**2 if se > 0 else math.nan,
-        "trunk_episodes": n,
-        "branch_episodes": branches,
+        "trunk_episodes": z.size,
+        "branch_episodes": sum(p["branch_of"].size for p in parts),
         "replay_mismatches": int(sum(np.count_nonzero(~p["branch_replayed"]) for p in parts)),
     }

@@ -139,9 +139,6 @@ class TrafficCore:
         """[B] the tag `scenario_source` gave each world's current traffic (-1: none)."""
         self.batch_size = batch_size
         self.proposal = proposal
-        self.lapse_branch = np.full(batch_size, -1, dtype=np.int64)
-        """[B] with lapse splitting (`Proposal.lapse_split`): the branch each world runs (-1:
-        the trunk; `set_lapse_branches`)."""
         self.params = np.tile(self._pack(cfg), (batch_size, 1))  # [B, P]: each world's parameters
         self.v_limit = cfg.road.speed_limit_mps
         self.ego_features = ego_features(cfg)
@@ -366,12 +363,14 @@ class TrafficCore:
 
     def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:
         self.streams.cfgs[b] = cfg
+        branch = self.params[b, L.P_LAPSE_FORCE]  # the world's own, not the scenario's
         self.params[b] = self._pack(cfg)
-        self.params[b, L.P_LAPSE_FORCE] = self.lapse_branch[b]
+        self.params[b, L.P_LAPSE_FORCE] = branch
 
     def set_lapse_branches(self, branch: Sequence[int] | np.ndarray) -> None:
         """With lapse splitting: world b runs branch `branch[b]` of its road from now on (-1:
-        the trunk, j >= 0: the lapse begins at the j-th branch point; `marlmerge.sim.lapses`).
+        the trunk, j >= 0: the lapse begins at the j-th branch point; `marlmerge.sim.lapses`),
+        kept in its parameters (`P_LAPSE_FORCE`) across resets.
         Set it before the ego reaches the merge zone; the branch replays the road of the same
         seed."""
         if self.proposal is None or self.proposal.lapse_split is None:
@@ -383,7 +382,6 @@ class TrafficCore:
             )
         if np.any(branch < -1):
             raise ValueError(f"set_lapse_branches: branches are -1 or >= 0, got {branch.min()}")
-        self.lapse_branch[:] = branch
         self.params[:, L.P_LAPSE_FORCE] = branch
 
     def _pack(self, cfg: ScenarioConfig) -> np.ndarray:

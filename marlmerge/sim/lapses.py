@@ -174,14 +174,32 @@ def _split_draw(S: tuple, b: int, p: np.ndarray, s: int, c: int) -> bool:
     wf[b, WF_LAPSE_STEPS + c] += 1.0
     r = p[P_LAPSE_R + c]
     u = lapse_uniform(wi[b, WI_LAPSE_KEY] ^ BRANCH_SALT, wi[b, WI_STEPS], vi[b, VI_ID, s])
-    here = _branch_points(wf, b)
     if u < r:
+        here = _branch_points(wf, b)  # the branch points passed before this one
         wf[b, WF_LAPSE_N + c] += 1.0
         if here == p[P_LAPSE_FORCE]:
             wf[b, WF_LAPSE_LOGW] += math.log(p_nat / r)
             return True
     wf[b, WF_LAPSE_LOGW] += math.log1p(-p_nat)
     return False
+
+
+@kernel(inline=True)
+def _tilted_draw(S: tuple, b: int, p: np.ndarray, s: int, c: int) -> bool:
+    """A lapse drawn with the proposal's probability of class `c`, its weight kept (c = -1:
+    the natural probability, nothing kept)."""
+    vf, vi, wf, wi, lanes, sched = S
+    p_nat = p[P_LAPSE_P]
+    q = p[P_LAPSE_Q + c] if c >= 0 else p_nat
+    lapse = lapse_uniform(wi[b, WI_LAPSE_KEY], wi[b, WI_STEPS], vi[b, VI_ID, s]) < q
+    if c >= 0:
+        wf[b, WF_LAPSE_STEPS + c] += 1.0
+        if lapse:
+            wf[b, WF_LAPSE_N + c] += 1.0
+            wf[b, WF_LAPSE_LOGW] += math.log(p_nat / q)
+        else:
+            wf[b, WF_LAPSE_LOGW] += math.log1p(-p_nat) - math.log1p(-q)
+    return lapse
 
 
 @kernel(inline=True)
@@ -193,24 +211,10 @@ def lapsing(S: tuple, b: int, p: np.ndarray, s: int, critical: bool) -> bool:
     if left > 0.0:
         vf[b, VF_LAPSE, s] = left - 1.0
         return True
-    p_nat = p[P_LAPSE_P]
     split = p[P_LAPSE_SPLIT] > 0.0
     begun = _split_lapse_begun(wf, b, p) if split else _tilted_lapse_begun(wf, b)
     c = lapse_class(S, b, p, s) if critical and not begun else -1
-    if split and c >= 0:
-        lapse = _split_draw(S, b, p, s, c)
-        if lapse:
-            vf[b, VF_LAPSE, s] = p[P_LAPSE_STEPS] - 1.0
-        return lapse
-    q = p[P_LAPSE_Q + c] if c >= 0 else p_nat
-    lapse = lapse_uniform(wi[b, WI_LAPSE_KEY], wi[b, WI_STEPS], vi[b, VI_ID, s]) < q
-    if c >= 0:
-        wf[b, WF_LAPSE_STEPS + c] += 1.0
-        if lapse:
-            wf[b, WF_LAPSE_N + c] += 1.0
-            wf[b, WF_LAPSE_LOGW] += math.log(p_nat / q)
-        else:
-            wf[b, WF_LAPSE_LOGW] += math.log1p(-p_nat) - math.log1p(-q)
+    lapse = _split_draw(S, b, p, s, c) if split and c >= 0 else _tilted_draw(S, b, p, s, c)
     if lapse:
         vf[b, VF_LAPSE, s] = p[P_LAPSE_STEPS] - 1.0
     return lapse
