@@ -113,8 +113,8 @@ def split_batch(
 
 def episode_values(batch: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Each episode's weighted events z [E] and summed weights [E] (trunk and branches)."""
-    z = np.where(batch["event"], np.exp(batch["log_weight"]), 0.0)
     w = np.exp(batch["log_weight"])
+    z = np.where(batch["event"], w, 0.0)
     bw = np.exp(batch["branch_log_weight"])
     np.add.at(z, batch["branch_of"], np.where(batch["branch_event"], bw, 0.0))
     np.add.at(w, batch["branch_of"], bw)
