@@ -5,6 +5,8 @@ import csv
 import dataclasses
 import functools
 import json
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -230,3 +232,24 @@ def test_level_replay_seeds_are_their_single_runs(tmp_path):
     train_seeds(cfg, [0, 1], cut, resume=True, progress=False)
     for seed in (0, 1):
         _same_run(cut / f"seed_{seed}", tmp_path / "vec" / f"seed_{seed}")
+
+
+def test_torch_keeps_its_thread_count_after_the_batched_core_starts_numbas_pool():
+    """A core of 64 worlds or more starts Numba's OpenMP pool, which resets the thread count
+    torch reads too; `set_torch_threads` (what every training run calls) keeps torch's. A fresh
+    process: once the pool has started, any later `torch.set_num_threads` sticks."""
+    code = (
+        "import torch\n"
+        "from marlmerge.config import ScenarioConfig\n"
+        "from marlmerge.sim.core import PARALLEL_MIN_WORLDS, TrafficCore\n"
+        "from marlmerge.training.loop import set_torch_threads\n"
+        "torch.get_num_threads()\n"
+        "set_torch_threads(1)\n"
+        "core = TrafficCore(ScenarioConfig(), batch_size=PARALLEL_MIN_WORLDS, seed=0)\n"
+        "core.rollout(torch.zeros(PARALLEL_MIN_WORLDS).numpy())\n"
+        "print(core.parallel, torch.get_num_threads())\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=600
+    )
+    assert out.stdout.split()[-2:] == ["True", "1"], out.stdout + out.stderr

@@ -86,6 +86,7 @@ from marlmerge.training.loop import (
     make_replay,
     run_loop,
     save_checkpoint,
+    set_torch_threads,
     transition_rows,
 )
 from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
@@ -405,7 +406,7 @@ def cotrain(
             )
     (out / "pool").mkdir(parents=True, exist_ok=True)
     files.write_text(out / "config.json", json.dumps(to_dict(cfg), indent=1))
-    torch.set_num_threads(cfg.threads)
+    set_torch_threads(cfg.threads)
     run = CoTrainRun(cfg, out, ckpt, progress)
     t0 = time.perf_counter()
     killed = False

@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
@@ -37,6 +38,18 @@ from marlmerge.training.shield import shielded
 
 RowsFn = Callable[[TensorDictBase], Tensor]
 """Collector batch [B, T] -> packed transitions [n, obs | action | reward | terminated | next]."""
+
+
+def set_torch_threads(n: int) -> None:
+    """Run torch on `n` threads for the rest of the process.
+
+    Numba's OpenMP thread pool, started by the first core of `PARALLEL_MIN_WORLDS` worlds or
+    more (`marlmerge.sim.core`), sets the OpenMP runtime's thread count that torch reads too: a
+    `torch.set_num_threads(1)` made before it would be undone, and the updates would run on
+    every core, slower (`docs/scale-out.md`). So the pool is started first (once per process).
+    """
+    numba.get_num_threads()  # starts Numba's threading layer
+    torch.set_num_threads(n)
 
 
 def make_replay(

@@ -50,6 +50,7 @@ from marlmerge.training.loop import (
     make_collector,
     run_loop,
     save_checkpoint,
+    set_torch_threads,
 )
 from marlmerge.training.shield import make_train_shield, shielded
 from marlmerge.training.train import (
@@ -268,7 +269,7 @@ def train_seeds(
     if ckpt_path.exists() and not resume:
         raise ValueError(f"{out} already holds a run: pass --resume to continue it")
     ckpt = load_seeds_checkpoint(cfg, seeds, ckpt_path) if resume else None
-    torch.set_num_threads(cfg.threads)
+    set_torch_threads(cfg.threads)
     if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
         return [
             _finished_result(seed_dir(out, s), st)

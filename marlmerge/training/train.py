@@ -61,6 +61,7 @@ from marlmerge.training.loop import (
     make_replay,
     run_loop,
     save_checkpoint,
+    set_torch_threads,
     transition_rows,
 )
 from marlmerge.training.ramp import (
@@ -246,7 +247,7 @@ def train(
     done = ("sim_steps", cfg.total_sim_steps)
     ckpt = open_checkpoint(cfg, ckpt_path, CHECKPOINT_VERSION, done) if resume else None
     files.write_text(out / "config.json", json.dumps(to_dict(cfg), indent=1))
-    torch.set_num_threads(cfg.threads)
+    set_torch_threads(cfg.threads)
     if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
         return finish_resumed(cfg, out, ckpt)
 
