@@ -234,6 +234,7 @@ def test_level_replay_seeds_are_their_single_runs(tmp_path):
         _same_run(cut / f"seed_{seed}", tmp_path / "vec" / f"seed_{seed}")
 
 
+@pytest.mark.slow
 def test_torch_keeps_its_thread_count_after_the_batched_core_starts_numbas_pool():
     """A core of 64 worlds or more starts Numba's OpenMP pool, which resets the thread count
     torch reads too; `set_torch_threads` (what every training run calls) keeps torch's. A fresh
