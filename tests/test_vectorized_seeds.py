@@ -244,7 +244,7 @@ def test_torch_keeps_its_thread_count_after_the_batched_core_starts_numbas_pool(
         "from marlmerge.config import ScenarioConfig\n"
         "from marlmerge.sim.core import PARALLEL_MIN_WORLDS, TrafficCore\n"
         "from marlmerge.training.loop import set_torch_threads\n"
-        "torch.get_num_threads()\n"
+        "torch.get_num_threads()\n"  # torch's OpenMP runtime up first: then the pool resets it
         "set_torch_threads(1)\n"
         "core = TrafficCore(ScenarioConfig(), batch_size=PARALLEL_MIN_WORLDS, seed=0)\n"
         "core.rollout(torch.zeros(PARALLEL_MIN_WORLDS).numpy())\n"
