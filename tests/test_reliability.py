@@ -351,3 +351,29 @@ def test_a_rule_behind_the_left_watching_shield_sees_the_left_lane(capsys):
     assert scenario_for(parse_policy("gap@shield"), None, light) == light
     assert main(["evaluate", "gap@shield-left", "--episodes", "3", "--worlds", "3"]) == 0
     assert "greedy evaluation on 3 held-out episodes" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("files_there", "message"),
+    [
+        (None, "does not exist"),
+        ({}, "has no loss.csv or egos.csv"),
+        (
+            {"seed_0/egos.csv": "ego,total_reward\n"},
+            "the logs are in its seed_* folders: plot each",
+        ),
+        ({"egos.csv": "ego,phase,total_reward\n"}, "has no column 'acceleration'"),
+        ({"loss.csv": "group,step\n"}, "has no column 'update'"),
+    ],
+)
+def test_plot_refuses_a_folder_that_is_not_a_training_run(tmp_path, capsys, files_there, message):
+    run = tmp_path / "run"
+    for name, text in (files_there or {}).items():
+        (run / name).parent.mkdir(parents=True, exist_ok=True)
+        (run / name).write_text(text)
+    if files_there == {}:
+        run.mkdir()
+    assert main(["plot", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(run) in err
+    assert not list(tmp_path.rglob("*.png"))  # nothing drawn

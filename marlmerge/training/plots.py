@@ -61,14 +61,48 @@ def _raw_and_average(
     )
 
 
+LOSS_COLUMNS = ("update", "loss")
+EGO_COLUMNS = ("ego", "total_reward", *TERM_TITLES)
+
+
+def check_run_logs(run: Path) -> None:
+    """Refuse, naming the folder, a run folder that is missing or has neither log (a `--seeds`
+    run's parent: name its `seed_*` folders), or a log without the columns the figures draw."""
+    if not run.is_dir():
+        raise ValueError(f"plot: run folder {str(run)!r} does not exist")
+    logs = [run / name for name in ("loss.csv", "egos.csv") if (run / name).is_file()]
+    if not logs:
+        seeds = sorted(p.parent for p in run.glob("seed_*/egos.csv"))
+        hint = (
+            f" (the logs are in its seed_* folders: plot each, e.g. {str(seeds[0])!r})"
+            if seeds
+            else ""
+        )
+        raise ValueError(
+            f"plot: {str(run)!r} has no loss.csv or egos.csv: not a training run's folder{hint}"
+        )
+    for path in logs:
+        with path.open(newline="") as fh:
+            header = next(csv.reader(fh), [])
+        need = LOSS_COLUMNS if path.name == "loss.csv" else EGO_COLUMNS
+        missing = [c for c in need if c not in header]
+        if missing:
+            raise ValueError(
+                f"plot: {str(path)!r} has no column {missing[0]!r} "
+                "(plot draws the logs of a `marlmerge train` run)"
+            )
+
+
 def plot_run(run_dir: str | Path) -> list[Path]:
-    """Write the three figures into `run_dir`; returns their paths."""
+    """Write the three figures into `run_dir`; returns their paths. A folder that is not a
+    training run's is refused first (`check_run_logs`)."""
+    run = Path(run_dir)
+    check_run_logs(run)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run = Path(run_dir)
     loss = _read(run / "loss.csv") if (run / "loss.csv").exists() else {}
     egos = _read(run / "egos.csv") if (run / "egos.csv").exists() else {}
     ego_window = max(10, egos["total_reward"].size // 50) if egos else 10
