@@ -377,3 +377,13 @@ def test_plot_refuses_a_folder_that_is_not_a_training_run(tmp_path, capsys, file
     err = capsys.readouterr().err
     assert message in err and str(run) in err
     assert not list(tmp_path.rglob("*.png"))  # nothing drawn
+
+
+@pytest.mark.parametrize("name", ["ego_accel", "ego_join"])
+def test_core_commands_that_do_not_fit_the_worlds_name_the_argument(name):
+    core = TrafficCore(ScenarioConfig(), batch_size=2, seed=0)
+    before = _state(core)
+    kwargs = {"ego_accel": np.zeros(2), name: np.zeros(3)}
+    with pytest.raises(ValueError, match=f"{name} of shape \\(3,\\) does not fit 2 worlds"):
+        core.rollout(**kwargs)
+    assert _same(_state(core), before)  # refused before any step

@@ -496,9 +496,9 @@ class TrafficCore:
         b = self.batch_size
         roster = self._no_roster if roster is None else roster
         ego_cmd = np.full((b, 2), np.nan)
-        ego_cmd[:, 0] = np.asarray(ego_accel, dtype=np.float64).reshape(b)
+        ego_cmd[:, 0] = self._per_world("ego_accel", ego_accel)
         if ego_join is not None:
-            ego_cmd[:, 1] = np.asarray(ego_join, dtype=np.float64).reshape(b)
+            ego_cmd[:, 1] = self._per_world("ego_join", ego_join)
         if roster.n_agents == 0:
             roster_cmd = self._no_cmd
         else:
@@ -515,6 +515,16 @@ class TrafficCore:
                 roster_cmd[:, :, c] = value
         step_mask = None if worlds is None else self._mask(worlds)
         return self._call(ego_cmd, k, roster, roster_cmd, step_mask)
+
+    def _per_world(self, name: str, value: np.ndarray | float) -> np.ndarray:
+        """`value` as [B] float64: one number per world (a scalar only with one world)."""
+        out = np.asarray(value, dtype=np.float64)
+        if out.size != self.batch_size:
+            raise ValueError(
+                f"{name} of shape {out.shape} does not fit {self.batch_size} worlds "
+                "(one command per world)"
+            )
+        return out.reshape(self.batch_size)
 
     def step(
         self,
