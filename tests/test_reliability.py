@@ -387,3 +387,34 @@ def test_core_commands_that_do_not_fit_the_worlds_name_the_argument(name):
     with pytest.raises(ValueError, match=f"{name} of shape \\(3,\\) does not fit 2 worlds"):
         core.rollout(**kwargs)
     assert _same(_state(core), before)  # refused before any step
+
+
+def test_the_gymnasium_env_names_its_own_action_shape():
+    env = RampMergeEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must have shape \(1,\), got shape \(2, 1\)"):
+        env.step(np.zeros((2, 1)))
+    with pytest.raises(ValueError, match=r"a number or an array of shape \(1,\), got 'a'"):
+        env.step("a")
+
+
+@pytest.mark.parametrize("num_envs", [0, -1, 2.5, True])
+def test_a_vector_env_without_worlds_is_refused(num_envs):
+    from marlmerge.views.gym_env import RampMergeVectorEnv
+
+    with pytest.raises(ValueError, match=f"num_envs must be an integer >= 1, got {num_envs!r}"):
+        RampMergeVectorEnv(num_envs=num_envs)
+
+
+def test_a_torchrl_step_without_its_actions_names_the_missing_key():
+    from marlmerge.views.torchrl_env import BatchedMergeEnv
+    from marlmerge.views.torchrl_groups import MultiAgentMergeEnv
+
+    env = BatchedMergeEnv(num_worlds=2)
+    with pytest.raises(KeyError, match="no 'action'.*'observation'"):
+        env.step(env.reset())
+    env = MultiAgentMergeEnv(num_worlds=2)
+    td = env.reset()
+    td["action"] = torch.zeros(2, 1)
+    with pytest.raises(KeyError, match=r"no \('highway', 'action'\)"):
+        env.step(td)

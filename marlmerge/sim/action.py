@@ -52,21 +52,27 @@ def split_actions(a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def as_actions(
-    value: Any, shape: tuple[int, ...], who: str = "action", exact: bool = False
+    value: Any,
+    shape: tuple[int, ...],
+    who: str = "action",
+    exact: bool = False,
+    shown: tuple[int, ...] | None = None,
 ) -> np.ndarray:
     """`value` as a float64 array of `shape`'s size (any array of that size; with `exact`, only
     `shape` itself or a scalar), every entry finite, returned flat [shape[0]] when `shape` holds
     one number per row, else as `shape`; `who` names the agent in errors ("action of
-    'ramp_0'"), and a bad entry of a batch names its world."""
+    'ramp_0'"), a bad entry of a batch names its world, and errors name the shape `shown`
+    (default `shape`: a view whose action space has another shape of the same size gives it)."""
     try:
         raw = np.asarray(value)
     except (TypeError, ValueError):  # ragged nested lists
         raw = np.asarray(None)
+    shown = shape if shown is None else shown
     if raw.dtype.kind not in "iuf":  # None, strings, booleans, objects
-        raise ValueError(f"{who} must be a number or an array of shape {shape}, got {value!r}")
+        raise ValueError(f"{who} must be a number or an array of shape {shown}, got {value!r}")
     a = raw.astype(np.float64)
     if a.size != math.prod(shape) or (exact and a.shape not in (shape, ())):
-        raise ValueError(f"{who} must have shape {shape}, got shape {a.shape} ({value!r})")
+        raise ValueError(f"{who} must have shape {shown}, got shape {a.shape} ({value!r})")
     a = a.reshape(shape[0]) if a.size == shape[0] else a.reshape(shape)
     if not (math.isfinite(a.flat[0]) if a.size == 1 else np.isfinite(a).all()):
         bad = ~np.isfinite(a)

@@ -99,7 +99,9 @@ class RampMergeEnv(gymnasium.Env):
             raise RuntimeError(
                 "step() after the episode ended (terminated or truncated): call reset() first"
             )
-        obs, terms, outcome, t = self._worlds.step(as_actions(action, (1, action_size(self.cfg))))
+        obs, terms, outcome, t = self._worlds.step(
+            as_actions(action, (1, action_size(self.cfg)), shown=self.action_space.shape)
+        )
         o = int(outcome[0])
         terminated = o in (OUTCOME_SUCCESS, OUTCOME_COLLISION)
         truncated = o == OUTCOME_TRUNCATED
@@ -165,6 +167,9 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
     ):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        whole = isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
+        if not whole or num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.cfg = resolve_config(config, **(overrides or {}))
         self.num_envs = int(num_envs)
         self.render_mode = render_mode

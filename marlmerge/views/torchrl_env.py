@@ -156,7 +156,7 @@ class BatchedMergeEnv(EnvBase):
     def _actions(self, tensordict: TensorDictBase) -> np.ndarray:
         """The ego actions [B] (accelerations) or [B, 2] (with the join) of a step; NaN or
         infinite values raise, naming the world."""
-        action = tensordict.get("action").to(torch.float64).cpu().numpy()
+        action = required_key(tensordict, "action").to(torch.float64).cpu().numpy()
         return as_actions(action, (self.num_worlds, self.action_size))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -216,3 +216,12 @@ def ego_action_spec(cfg: ScenarioConfig, b: int, device: Any) -> Bounded:
     """The ego's action spec [B, A] (`marlmerge.sim.action.action_bounds`)."""
     lo, hi = (torch.as_tensor(v).expand(b, len(v)) for v in action_bounds(cfg))
     return Bounded(lo, hi, (b, len(action_bounds(cfg)[0])), dtype=torch.float32, device=device)
+
+
+def required_key(tensordict: TensorDictBase, key: str | tuple[str, ...]) -> torch.Tensor:
+    """tensordict[key], or an error naming the key and the keys the step was given."""
+    value = tensordict.get(key, None)
+    if value is None:
+        given = ", ".join(sorted(repr(k) for k in tensordict.keys()))
+        raise KeyError(f"step: the tensordict has no {key!r} (its keys: {given})")
+    return value

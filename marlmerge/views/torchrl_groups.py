@@ -47,7 +47,7 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.sim import Roster
 from marlmerge.sim.observation import HIGHWAY_FEATURES
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
-from marlmerge.views.torchrl_env import BatchedMergeEnv, ego_action_spec
+from marlmerge.views.torchrl_env import BatchedMergeEnv, ego_action_spec, required_key
 
 GROUP = "highway"
 
@@ -197,7 +197,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         b, k = self.num_worlds, self.n_agents
         action = self._actions(tensordict)
-        hw = tensordict.get((GROUP, "action"))
+        hw = required_key(tensordict, (GROUP, "action"))
         if hw.shape[-3:] != (b, k, 1):
             raise ValueError(f"('highway', 'action') must have shape {(b, k, 1)}, got {hw.shape}")
         hw_action = hw.reshape(b, k).to(torch.float64).cpu().numpy()
