@@ -418,3 +418,9 @@ def test_a_torchrl_step_without_its_actions_names_the_missing_key():
     td["action"] = torch.zeros(2, 1)
     with pytest.raises(KeyError, match=r"no \('highway', 'action'\)"):
         env.step(td)
+
+
+def test_a_dotted_key_below_a_value_says_the_value_is_not_a_table(capsys):
+    args = ["train", "paper", "--set", "scenario.traffic.flow_vph_per_lane=5"]
+    assert main(args) == 2
+    assert "'scenario' is a value, not a table" in capsys.readouterr().err

@@ -36,7 +36,8 @@ def set_dotted(data: dict[str, Any], dotted: str, value: Any, create: bool = Fal
         if create and p not in node:
             node[p] = {}
         if not isinstance(node.get(p), dict):
-            raise ValueError(f"unknown config key {dotted!r}")
+            what = f": {p!r} is a value, not a table" if p in node else ""
+            raise ValueError(f"unknown config key {dotted!r}{what}")
         node = node[p]
     if leaf not in node and not create:
         raise ValueError(f"unknown config key {dotted!r}")
