@@ -424,3 +424,20 @@ def test_a_dotted_key_below_a_value_says_the_value_is_not_a_table(capsys):
     args = ["train", "paper", "--set", "scenario.traffic.flow_vph_per_lane=5"]
     assert main(args) == 2
     assert "'scenario' is a value, not a table" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--policy", "gap", "--policy", "gap"], "policy 'gap' is given twice"),
+        (["--condition", "default", "--condition", "default"], "condition 'default' is given"),
+        (["--condition", "grid_*", "--condition", "grid_dense_mixed"], "'dense mixed' is given"),
+    ],
+)
+def test_the_grid_refuses_a_policy_or_condition_given_twice(tmp_path, capsys, args, message):
+    args = ["--policy", "gap", *args] if "--policy" not in args else args
+    args = [*args, "--condition", "light"] if "--condition" not in args else args
+    out = tmp_path / "grid"
+    assert main(["grid", *args, "--episodes", "1", "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()  # refused before any file

@@ -291,6 +291,19 @@ def _estimate_table(estimates: list[dict], policies: list[str], conds: list[str]
     ]
 
 
+def refuse_twice(what: str, names: Sequence[str]) -> None:
+    """A policy or condition named twice would add the same episodes twice to its pooled rates
+    (and narrow their intervals): refused, naming it."""
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise ValueError(
+                f"{what} {name!r} is given twice (a glob may overlap another spec): its episodes "
+                "would count twice; give each once, or a label of its own (LABEL=SPEC)"
+            )
+        seen.add(name)
+
+
 def run_grid(
     policies: Sequence[PolicySpec],
     conditions: Sequence[str | Condition],
@@ -321,6 +334,8 @@ def run_grid(
             f"ramp_hours must be > 0 and ramp_worlds >= 1, got {ramp_hours} and {ramp_worlds}"
         )
     every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
+    refuse_twice("policy", [p.name for p in policies])
+    refuse_twice("condition", [c.label for c in every])
     for p in (p for p in policies if p.shield_left):  # refused before any file is written
         for c in every:
             for run in p.runs or (None,):
