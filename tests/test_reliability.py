@@ -441,3 +441,22 @@ def test_the_grid_refuses_a_policy_or_condition_given_twice(tmp_path, capsys, ar
     assert main(["grid", *args, "--episodes", "1", "--out", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()  # refused before any file
+
+
+@pytest.mark.parametrize(
+    ("backend", "address", "message"),
+    [
+        ("serial", "auto", "needs --backend ray"),
+        ("ray", "junk", "expected auto, HOST:PORT or ray://HOST:PORT"),
+        ("ray", "127.0.0.1:1", "nothing answers there"),
+        ("ray", "ray://127.0.0.1:1", "nothing answers there"),
+    ],
+)
+def test_a_ray_address_is_checked_before_any_work(tmp_path, capsys, backend, address, message):
+    pytest.importorskip("ray")
+    out = tmp_path / "grid"
+    args = ["grid", "--policy", "gap", "--condition", "light", "--episodes", "1"]
+    args += ["--backend", backend, "--address", address, "--out", str(out)]
+    assert main(args) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import socket
 import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -78,12 +79,16 @@ def start_method() -> str:
     return "spawn"
 
 
-def check_backend(backend: str, workers: int | None = None) -> None:
-    """A clear error for a backend that does not exist or cannot run here, before any work."""
+def check_backend(backend: str, workers: int | None = None, address: str | None = None) -> None:
+    """A clear error for a backend that does not exist or cannot run here, before any work:
+    an `address` only with Ray, and one that nothing answers at (Ray itself would retry for
+    minutes)."""
     if backend not in BACKENDS:
         raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
+    if address and backend != "ray":
+        raise ValueError(f"--address {address!r} joins a Ray cluster: it needs --backend ray")
     if backend == "ray":
         try:
             import ray  # noqa: F401
@@ -91,6 +96,25 @@ def check_backend(backend: str, workers: int | None = None) -> None:
             raise ValueError(
                 '--backend ray: Ray is not installed (pip install -c constraints.txt ".[ray]")'
             ) from None
+        if address:
+            check_ray_address(address)
+
+
+def check_ray_address(address: str, timeout_s: float = 5.0) -> None:
+    """`address` ("auto", "HOST:PORT" or "ray://HOST:PORT") answers a TCP connection within
+    `timeout_s` ("auto" is Ray's to find)."""
+    if address == "auto":
+        return
+    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    if not colon or not host or not port.isdigit():
+        raise ValueError(f"--address {address!r}: expected auto, HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise ValueError(
+            f"--address {address!r}: nothing answers there ({err}); start a cluster with "
+            "`ray start --head` and give its address, or leave --address out for a local one"
+        ) from None
 
 
 def run_tasks(
@@ -103,7 +127,7 @@ def run_tasks(
     max_retries: int = 2,
 ) -> list[R]:
     """Run `fn(task)` for every task on `backend`; returns the results in task order."""
-    check_backend(backend, workers)
+    check_backend(backend, workers, address)
     results: dict[int, R] = {}
 
     def done(i: int, r: R) -> None:

@@ -324,7 +324,7 @@ def run_grid(
     "is" the summary adds each cell's importance-sampled collision rate. Conditions with ramp
     flow are measured as a whole merge instead (`marlmerge.evaluation.grid_flow`: `ramp_hours`
     in each of `ramp_worlds` worlds)."""
-    check_backend(backend, workers)
+    check_backend(backend, workers, address)
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if episodes < 1 or worlds < 1:

@@ -175,7 +175,7 @@ def sweep(
     from marlmerge.config.presets import preset_kind
 
     kind = preset_kind(preset)
-    check_backend(backend, workers)
+    check_backend(backend, workers, address)
     overrides = dict(overrides or {})
     if "seed" in overrides:
         raise ValueError("sweep: give the seeds with --seeds, not --set seed=...")
