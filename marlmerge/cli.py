@@ -388,7 +388,13 @@ def estimate_cmd(args: argparse.Namespace) -> int:
         + f"{report['events']} events, "
         f"ESS {report['ess']:.1f}, mean weight {report['mean_weight']:.3f}; Monte Carlo "
         f"would need {report['mc_equivalent_episodes']:.3g} episodes"
-        + ("" if report["trusted"] else " (few effective events: not to be trusted)")
+        + (
+            ""
+            if report["trusted"]
+            else " (no event: no upper bound; run more episodes)"
+            if report["events"] == 0
+            else " (few effective events: not to be trusted)"
+        )
     )
     if report.get("replay_mismatches"):
         print(

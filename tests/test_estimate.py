@@ -104,6 +104,21 @@ def test_weighted_estimate_is_unbiased_on_a_known_rate():
     assert pooled["mc_equivalent_episodes"] > 4 * 100_000
 
 
+def test_a_weighted_estimate_without_events_has_no_upper_bound(tmp_path, capsys):
+    """No event: the weighted sample's variance is 0 whatever the rate, so the interval is
+    [0, nan], not [0, 0] (which would claim the rate is exactly 0), in the estimate, the
+    command's line and the grid's table."""
+    est = weighted_estimate(np.zeros(1_000, dtype=bool), np.log(np.full(1_000, 0.5)))
+    assert est["rate"] == 0.0 and est["ci95"][0] == 0.0 and math.isnan(est["ci95"][1])
+    assert math.isnan(est["se"]) and est["ess"] == 0.0
+    one = weighted_estimate(np.arange(1_000) == 3, np.zeros(1_000))  # one event: a bound
+    assert one["ci95"][1] > one["rate"] > 0.0
+    args = ["estimate", "gap", "--scenario", "light", "--method", "is", "--episodes", "20"]
+    assert main([*args, "--rounds", "1", "--round-episodes", "20", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "0 [0, nan]" in out and "no event: no upper bound" in out
+
+
 def test_the_whole_draw_pipeline_weighs_exactly():
     """Over many tilted roads the mean weight is 1 (E_q[p/q] = 1): a wrong ratio anywhere in the
     arrivals, profiles, driver bands or the ego's start speed would bias it. The natural
@@ -226,3 +241,15 @@ def test_rounds_wait_for_the_lapse_fits_events(tmp_path):
     levels = [r["level"] for r in report["rounds"]]
     assert sum(r["events"] for r in report["rounds"]) < 5
     assert len(levels) == 5 and any(_stalled(levels[:k]) for k in range(3, 5))  # went on
+
+
+def test_the_grids_table_gives_no_interval_for_a_run_without_events():
+    from marlmerge.evaluation.grid import _estimate_table
+
+    cell = {"policy": "gap", "condition": "light", "rate": 0.0, "se": math.nan, "ess": 0.0}
+    lines = _estimate_table([cell], ["gap"], ["light"])
+    assert any("[no interval: a run without events]" in line for line in lines)
+    cell = cell | {"rate": 0.001, "se": 0.0004, "ess": 40.0}
+    assert any(
+        "0.100 [0.022–0.178] ESS 40" in line for line in _estimate_table([cell], ["gap"], ["light"])
+    )

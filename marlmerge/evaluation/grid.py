@@ -31,6 +31,7 @@ import glob
 import hashlib
 import io
 import json
+import math
 import time
 import zlib
 from collections.abc import Sequence
@@ -276,6 +277,8 @@ def _estimate_table(estimates: list[dict], policies: list[str], conds: list[str]
         rate = float(np.mean([e["rate"] for e in runs]))
         se = float(np.sqrt(np.sum([e["se"] ** 2 for e in runs]))) / len(runs)
         ess = sum(e["ess"] for e in runs)
+        if not math.isfinite(se):  # a run without events: no interval (`weighted_mean_estimate`)
+            return f"{100 * rate:.3f} [no interval: a run without events] ESS {ess:.0f}"
         lo, hi = max(rate - Z_95 * se, 0.0), rate + Z_95 * se
         return f"{100 * rate:.3f} [{100 * lo:.3f}–{100 * hi:.3f}] ESS {ess:.0f}"
 

@@ -203,14 +203,23 @@ def weighted_mean_estimate(z: np.ndarray, y: np.ndarray) -> dict[str, float | li
     """A rate estimated as the mean of independent per-episode values z [E] (weighted events):
     the rate, its normal 95 % interval and standard error, the effective number of events of
     the weighted events y [M] ((sum y)^2 / sum y^2), the largest episode's share of the sum,
-    and the Monte Carlo episodes the same interval would need, rate (1 - rate) / se^2."""
+    and the Monte Carlo episodes the same interval would need, rate (1 - rate) / se^2. With no
+    event the sample's variance (0) says nothing about how large the rate could be: the
+    interval is [0, nan] and the standard error nan, never [0, 0]."""
     n = z.size
     rate = float(np.mean(z))
-    se = float(np.std(z, ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+    events = bool(np.any(z > 0))
+    se = float(np.std(z, ddof=1) / math.sqrt(n)) if n > 1 and events else math.nan
+    if n < 2:
+        ci95 = [math.nan, math.nan]
+    elif not events:
+        ci95 = [0.0, math.nan]
+    else:
+        ci95 = [max(rate - Z_95 * se, 0.0), rate + Z_95 * se]
     sum_y2 = float(np.sum(y * y))
     return {
         "rate": rate,
-        "ci95": [max(rate - Z_95 * se, 0.0), rate + Z_95 * se] if n > 1 else [math.nan] * 2,
+        "ci95": ci95,
         "se": se,
         "ess": float(np.sum(y) ** 2 / sum_y2) if sum_y2 > 0 else 0.0,
         "max_weight_share": float(np.max(z) / np.sum(z)) if np.sum(z) > 0 else math.nan,
