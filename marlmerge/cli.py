@@ -337,10 +337,26 @@ def grid_cmd(args: argparse.Namespace) -> int:
 
 
 def _settings(cls: type, args: argparse.Namespace) -> Any:
-    """A settings dataclass from the command line: each field the arguments name (`--rel-ci`
-    sets `rel_ci`); the others keep their defaults."""
-    given = vars(args)
+    """A settings dataclass from the command line: each field the arguments name and give
+    (`--rel-ci` sets `rel_ci`); the others, and those left at None, keep their defaults."""
+    given = {k: v for k, v in vars(args).items() if v is not None}
     return cls(**{f.name: given[f.name] for f in dataclasses.fields(cls) if f.name in given})
+
+
+def check_estimate_flags(args: argparse.Namespace) -> None:
+    """`estimate` flags that the asked method would ignore are refused, naming them."""
+    if args.method != "is":
+        for flag, value in (("--rounds", args.rounds), ("--round-episodes", args.round_episodes)):
+            if value is not None:
+                raise ValueError(
+                    f"estimate {flag} {value}: the rounds fit the proposal of --method is; "
+                    f"--method {args.method} fits nothing"
+                )
+    if args.episodes is not None and args.max_episodes is not None:
+        raise ValueError(
+            f"estimate --max-episodes {args.max_episodes} caps a --rel-ci run; with --episodes "
+            f"{args.episodes} it does nothing: give one of them"
+        )
 
 
 def stress_cmd(args: argparse.Namespace) -> int:
@@ -363,6 +379,7 @@ def estimate_cmd(args: argparse.Namespace) -> int:
     from marlmerge.config.presets import resolve_config
     from marlmerge.evaluation.estimate import EstimateSettings, Estimator
 
+    check_estimate_flags(args)
     settings = _settings(EstimateSettings, args)
     scen = resolve_config(args.scenario) if args.scenario else None
     from marlmerge.evaluation.registry import policy_for_evaluation
@@ -739,12 +756,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="final episodes instead (split: trunks, each with its branches)",
     )
-    es.add_argument("--max-episodes", type=_at_least(1), default=2_000_000)
+    es.add_argument(
+        "--max-episodes", type=_at_least(1), default=None, help="with --rel-ci (default 2,000,000)"
+    )
     es.add_argument("--seed", type=_at_least(0), default=0)
     es.add_argument("--worlds", type=_at_least(1), default=500, help="episodes run at once")
     es.add_argument("--batch", type=_at_least(1), default=5000, help="episodes per batch")
-    es.add_argument("--rounds", type=_at_least(1), default=8, help="cross-entropy rounds at most")
-    es.add_argument("--round-episodes", type=_at_least(1), default=2000)
+    es.add_argument(
+        "--rounds", type=_at_least(1), default=None, help="is: cross-entropy rounds at most (8)"
+    )
+    es.add_argument(
+        "--round-episodes", type=_at_least(1), default=None, help="is: episodes per round (2,000)"
+    )
     es.add_argument("--out", default="runs/estimate", help="batches and report.json (resumable)")
     es.set_defaults(func=estimate_cmd)
 

@@ -460,3 +460,18 @@ def test_a_ray_address_is_checked_before_any_work(tmp_path, capsys, backend, add
     assert main(args) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--method", "mc", "--rounds", "3"], "--rounds 3: the rounds fit the proposal"),
+        (["--method", "split", "--round-episodes", "9"], "--method split fits nothing"),
+        (["--episodes", "100", "--max-episodes", "50"], "--max-episodes 50 caps a --rel-ci run"),
+    ],
+)
+def test_estimate_refuses_flags_its_method_would_ignore(tmp_path, capsys, flags, message):
+    out = tmp_path / "estimate"
+    assert main(["estimate", "gap", "--scenario", "lapses", *flags, "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
