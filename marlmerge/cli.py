@@ -68,9 +68,11 @@ def _run_config(
     sets: dict[str, Any],
     resume: bool,
     name: str = "checkpoint.pt",
+    named: bool = True,
 ) -> Any:
     """The config a run in `out` (checkpoint `name`) trains with: `cfg` for a new run, the
-    checkpoint's when resuming (a `--set` that differs from it is an error naming the key)."""
+    checkpoint's when resuming (a `--set` that differs from it, or a preset `named` on the
+    command line that is not the run's, is an error naming it)."""
     from marlmerge.config.presets import run_scenario
     from marlmerge.training.checkpoint import resume_config
 
@@ -83,7 +85,7 @@ def _run_config(
         )
     if resume and not has_run:
         raise ValueError(f"--resume: no checkpoint at {out / name}")
-    return resume_config(cls, out, cfg, sets, name) if resume else cfg
+    return resume_config(cls, out, cfg, sets, name, named) if resume else cfg
 
 
 def train_cmd(args: argparse.Namespace) -> int:
@@ -101,7 +103,7 @@ def train_cmd(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{cfg.name}")
     if args.seeds is not None:
         return _train_seeds_cmd(args, cfg, sets, out)
-    cfg = _run_config(TrainConfig, out, cfg, sets, args.resume)
+    cfg = _run_config(TrainConfig, out, cfg, sets, args.resume, named=bool(args.preset))
     print(
         f"training {cfg.name!r} on scenario {cfg.scenario!r}: {cfg.total_sim_steps:,} simulator "
         f"steps in {cfg.num_worlds} worlds, seed {cfg.seed}, writing {out}",
@@ -137,7 +139,7 @@ def _train_seeds_cmd(args: argparse.Namespace, cfg: Any, sets: dict[str, Any], o
     seeds = parse_seeds(args.seeds)
     if "seed" in sets:
         raise ValueError(f"--seeds {args.seeds} and --set seed={sets['seed']}: give one of them")
-    cfg = _run_config(TrainConfig, out, cfg, sets, args.resume, CHECKPOINT_NAME)
+    cfg = _run_config(TrainConfig, out, cfg, sets, args.resume, CHECKPOINT_NAME, bool(args.preset))
     print(
         f"training {cfg.name!r} on scenario {cfg.scenario!r}: {len(seeds)} seeds "
         f"({', '.join(map(str, seeds))}) in one process, {cfg.total_sim_steps:,} simulator steps "

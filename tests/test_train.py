@@ -170,6 +170,12 @@ def test_resume_refuses_a_set_that_differs_from_the_checkpoint(tmp_path, capsys)
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "--set lr=0.5 differs from the run being resumed" in err and "lr = 0.001" in err
+    # a preset named on the command line must be the run's (TINY's name is the default's)
+    before = _snapshot(tmp_path)
+    assert main(["train", "quick", "--out", str(tmp_path), "--resume", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"the run in {tmp_path} was trained from preset '{cfg.name}', not 'quick'" in err
+    assert _snapshot(tmp_path) == before  # nothing written
 
 
 @pytest.mark.parametrize("damage", ["deleted", "cut"])

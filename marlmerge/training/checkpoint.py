@@ -25,12 +25,25 @@ def saved_config(cls: type[C], data: dict[str, Any]) -> C:
 
 
 def resume_config(
-    cls: type[C], out: Path, requested: C, set_keys: Iterable[str], name: str = "checkpoint.pt"
+    cls: type[C],
+    out: Path,
+    requested: C,
+    set_keys: Iterable[str],
+    name: str = "checkpoint.pt",
+    named: bool = False,
 ) -> C:
     """The config of the run in `out` (checkpoint `name`) that `--resume` continues. A key given
     with `--set` must agree with it (a resumed run continues that run: nothing is resumable
-    with other values), except the `PLACE_KEYS`, which the request sets."""
+    with other values), except the `PLACE_KEYS`, which the request sets; a preset `named` on
+    the command line must be the run's (its `name`)."""
     saved = saved_config(cls, files.load(out / name, "checkpoint")["config"])
+    run_name, asked = saved.name, requested.name
+    if named and "name" not in set_keys and run_name != asked:
+        raise ValueError(
+            f"--resume: the run in {out} was trained from preset {run_name!r}, not {asked!r}; "
+            f"resume it with its own config (`marlmerge {cls.KIND} {run_name} --out {out} "
+            "--resume`) or start a new run with another --out"
+        )
     place = {k: getattr(requested, k) for k in PLACE_KEYS if k in set_keys}
     saved = dataclasses.replace(saved, **place)  # type: ignore[type-var]
     for key in set_keys:
