@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from marlmerge import RampMergeEnv, parallel_env
+from marlmerge import env as marlmerge_env
 from marlmerge.cli import main
 from marlmerge.config import ScenarioConfig, bounds_table, to_dict
 from marlmerge.io import files
@@ -475,3 +476,23 @@ def test_estimate_refuses_flags_its_method_would_ignore(tmp_path, capsys, flags,
     assert main(["estimate", "gap", "--scenario", "lapses", *flags, "--out", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_an_aec_env_refuses_a_bad_action_at_its_agents_own_turn():
+    from marlmerge.views.ramp_flow_env import ramp_flow_env
+
+    env = marlmerge_env()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action of 'ramp_0' must be finite, got nan"):
+        env.step(np.array([np.nan]))
+    assert env.agent_selection == "ramp_0"  # refused: the turn stays
+    env.step(np.zeros(1, dtype=np.float32))
+    with pytest.raises(ValueError, match=r"action of 'highway_0' must have shape \(1,\)"):
+        env.step(np.zeros(3))
+    flow = ramp_flow_env(config="ramp_flow")
+    flow.reset(seed=0)
+    while not flow.agents:  # ramp agents appear as vehicles enter the ramp
+        flow.step(None)
+    agent = flow.agent_selection
+    with pytest.raises(ValueError, match=f"action of {agent!r} must be finite, got inf"):
+        flow.step(np.array([np.inf]))

@@ -62,7 +62,6 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
-from pettingzoo.utils.conversions import parallel_to_aec
 
 from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.config.presets import find_preset, resolve_config  # noqa: F401  (their home: presets)
@@ -71,6 +70,7 @@ from marlmerge.sim.action import action_bounds, action_size, agent_actions
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
+from marlmerge.views.aec import checked_aec
 
 EGO_AGENT = "ramp_0"
 ENV_NAME = "marlmerge_ramp_v2"
@@ -198,9 +198,14 @@ class RampMergeParallelEnv(ParallelEnv):
         self._column = {a: j for a, j in zip(self._slots, chosen, strict=True)}
 
     # ------------------------------------------------------------------ step
+    @property
+    def action_sizes(self) -> dict[str, int]:
+        """Numbers per action of the agents that take more than one: the ego's (acceleration,
+        join) with a join choice."""
+        return {EGO_AGENT: action_size(self.cfg)}
+
     def _parse_actions(self, actions: dict[str, Any]) -> dict[str, np.ndarray]:
-        sizes = {EGO_AGENT: action_size(self.cfg)}  # (acceleration, join) with a join choice
-        return agent_actions(actions, self.possible_agents, self.agents, sizes)
+        return agent_actions(actions, self.possible_agents, self.agents, self.action_sizes)
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:
@@ -311,8 +316,9 @@ def parallel_env(
 
 
 def raw_env(**kwargs: Any) -> AECEnv:
-    """The same env as an AEC env (agents act one after the other; `parallel_to_aec`)."""
-    return parallel_to_aec(parallel_env(**kwargs))
+    """The same env as an AEC env (agents act one after the other; `parallel_to_aec`, each
+    action checked when given: `marlmerge.views.aec`)."""
+    return checked_aec(parallel_env(**kwargs))
 
 
 def env(**kwargs: Any) -> AECEnv:

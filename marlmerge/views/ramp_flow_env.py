@@ -51,7 +51,6 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
-from pettingzoo.utils.conversions import parallel_to_aec
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.presets import resolve_config
@@ -66,6 +65,7 @@ from marlmerge.sim.action import action_bounds, action_size, agent_actions
 from marlmerge.sim.observation import ramp_agent_features
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
+from marlmerge.views.aec import checked_aec
 from marlmerge.views.ramp_agents import RampAgentTable
 
 ENV_NAME = "marlmerge_ramp_flow_v1"
@@ -180,9 +180,13 @@ class RampFlowParallelEnv(ParallelEnv):
         return obs, rewards, terminations, truncations, infos
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def action_sizes(self) -> dict[str, int]:
+        """Numbers per action of every ramp agent: (acceleration, join) with a join choice."""
+        return dict.fromkeys(self.possible_agents, action_size(self.cfg))
+
     def _parse_actions(self, actions: dict[str, Any]) -> dict[str, np.ndarray]:
-        sizes = dict.fromkeys(self.possible_agents, action_size(self.cfg))
-        return agent_actions(actions, self.possible_agents, self.agents, sizes)
+        return agent_actions(actions, self.possible_agents, self.agents, self.action_sizes)
 
     def _column(self, agent: str) -> int:
         return int(agent.rsplit("_", 1)[1])
@@ -250,5 +254,6 @@ def ramp_flow_parallel_env(
 
 
 def ramp_flow_env(**kwargs: Any) -> AECEnv:
-    """The same env as an AEC env (agents act one after the other; `parallel_to_aec`)."""
-    return parallel_to_aec(ramp_flow_parallel_env(**kwargs))
+    """The same env as an AEC env (agents act one after the other; `parallel_to_aec`, each
+    action checked when given: `marlmerge.views.aec`)."""
+    return checked_aec(ramp_flow_parallel_env(**kwargs))
