@@ -399,12 +399,22 @@ def test_the_gymnasium_env_names_its_own_action_shape():
         env.step("a")
 
 
-@pytest.mark.parametrize("num_envs", [0, -1, 2.5, True])
-def test_a_vector_env_without_worlds_is_refused(num_envs):
+def _vector_env(view: str) -> type:
+    if view == "sb3":
+        pytest.importorskip("stable_baselines3")
+        from marlmerge.views.sb3_env import MergeVecEnv
+
+        return MergeVecEnv
     from marlmerge.views.gym_env import RampMergeVectorEnv
 
+    return RampMergeVectorEnv
+
+
+@pytest.mark.parametrize("num_envs", [0, -1, 2.5, True])
+@pytest.mark.parametrize("view", ["gymnasium", "sb3"])
+def test_a_vector_env_without_worlds_is_refused(num_envs, view):
     with pytest.raises(ValueError, match=f"num_envs must be an integer >= 1, got {num_envs!r}"):
-        RampMergeVectorEnv(num_envs=num_envs)
+        _vector_env(view)(num_envs=num_envs)
 
 
 def test_a_torchrl_step_without_its_actions_names_the_missing_key():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -130,3 +131,11 @@ def require(checks: list[tuple[bool, str]]) -> None:
     for ok, msg in checks:
         if not ok:
             raise ValueError(msg)
+
+
+def check_count(name: str, value: Any) -> int:
+    """`value` as an int if it is a whole number >= 1 (a Python or NumPy integer, not a bool),
+    else a `ValueError` naming `name` and the value: sizes such as worlds, envs and agents."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.evaluation.merge_metrics import MergeTally
 from marlmerge.evaluation.registry import ShieldedPolicy, policy_for_evaluation
 from marlmerge.policies.gap_acceptance import ShieldTally
@@ -270,8 +270,7 @@ def run_ramp_flow(
 
     if not hours > 0 or not skip_s >= 0:
         raise ValueError(f"hours must be > 0 and skip_s >= 0, got hours={hours}, skip_s={skip_s}")
-    if isinstance(worlds, bool) or not isinstance(worlds, int) or worlds < 1:
-        raise ValueError(f"worlds must be an integer >= 1, got {worlds!r}")
+    worlds = check_count("worlds", worlds)
     mix = parse_mix(driver)
     policies, cfg = agents_scenario(cfg, [spec for spec, _ in mix])
     drivers = RampDrivers(policies, [share for _, share in mix], worlds, seed)

@@ -21,7 +21,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from marlmerge.config import ScenarioConfig, from_dict, latency_steps, to_dict
+from marlmerge.config import ScenarioConfig, check_count, from_dict, latency_steps, to_dict
 from marlmerge.sim import kernels
 from marlmerge.sim import layout as L
 from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
@@ -121,8 +121,7 @@ class TrafficCore:
         proposal: draw the traffic the first ego of each reset meets from this proposal
         (`marlmerge.sim.proposal`); `streams.tilted.log_w` [B] holds each world's exact
         log-likelihood ratio. None (default): the scenario's own draws, bit for bit."""
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        batch_size = check_count("batch_size", batch_size)
         check_world_scenarios(cfg, batch_size, scenarios)
         self.cfg = cfg
         self.fixed_scenarios = scenarios is not None

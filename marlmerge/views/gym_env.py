@@ -39,7 +39,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED, TrafficCore
 from marlmerge.sim.action import action_size, as_actions
@@ -167,11 +167,8 @@ class RampMergeVectorEnv(gymnasium.vector.VectorEnv):
     ):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        whole = isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
-        if not whole or num_envs < 1:
-            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        self.num_envs = check_count("num_envs", num_envs)
         self.cfg = resolve_config(config, **(overrides or {}))
-        self.num_envs = int(num_envs)
         self.render_mode = render_mode
         self.highway_policy = highway_policy
         self.single_observation_space, self.single_action_space = ego_spaces(self.cfg)

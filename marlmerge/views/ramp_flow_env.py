@@ -52,7 +52,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import (
     OUTCOME_COLLISION,
@@ -82,8 +82,7 @@ class RampFlowParallelEnv(ParallelEnv):
         overrides: dict[str, Any] | None = None,
         max_cycles: int = DEFAULT_MAX_CYCLES,
     ):
-        if isinstance(max_cycles, bool) or not isinstance(max_cycles, int) or max_cycles < 1:
-            raise ValueError(f"max_cycles must be an integer >= 1, got {max_cycles!r}")
+        max_cycles = check_count("max_cycles", max_cycles)
         self.cfg = resolve_config(config, **(overrides or {}))
         if not self.cfg.ramp.flowing:
             raise ValueError(

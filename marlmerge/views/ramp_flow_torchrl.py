@@ -38,7 +38,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 from marlmerge.sim.action import action_bounds, action_size
@@ -67,8 +67,7 @@ class RampFlowTorchEnv(EnvBase):
             raise ValueError(
                 f"RampFlowTorchEnv needs ramp flow: ramp.flow_vph = {self.cfg.ramp.flow_vph}"
             )
-        if isinstance(max_agents, bool) or not isinstance(max_agents, int) or max_agents < 1:
-            raise ValueError(f"max_agents must be an integer >= 1, got {max_agents!r}")
+        max_agents = check_count("max_agents", max_agents)
         self.num_worlds, self.n_agents = num_worlds, max_agents
         self.core = TrafficCore(self.cfg, num_worlds, seed)
         self.table = RampAgentTable(self.core, max_agents, reuse=True)

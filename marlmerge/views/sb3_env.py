@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.config.presets import resolve_config
 from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TRUNCATED
 from marlmerge.sim.action import action_size, as_actions
@@ -40,6 +40,7 @@ class MergeVecEnv(VecEnv):
         highway_policy: HighwayPolicy | None = None,
         overrides: dict[str, Any] | None = None,
     ):
+        num_envs = check_count("num_envs", num_envs)
         self.cfg = resolve_config(config, **(overrides or {}))
         obs_space, act_space = ego_spaces(self.cfg)
         super().__init__(num_envs, obs_space, act_space)
