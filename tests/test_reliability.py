@@ -506,3 +506,11 @@ def test_an_aec_env_refuses_a_bad_action_at_its_agents_own_turn():
     agent = flow.agent_selection
     with pytest.raises(ValueError, match=f"action of {agent!r} must be finite, got inf"):
         flow.step(np.array([np.inf]))
+
+
+def test_render_refuses_ramp_flow_before_any_work(tmp_path, capsys):
+    out = tmp_path / "clip.gif"
+    args = ["render", "gap", "--scenario", "ramp_flow", "--episodes", "1", "--out", str(out)]
+    assert main(args) == 2
+    assert "render: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
+    assert not out.exists()

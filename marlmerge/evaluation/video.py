@@ -87,7 +87,15 @@ def render_episodes(
 ) -> tuple[Path, int, list[str]]:
     """Record and write a video; returns (path, frames, outcomes). `policy_spec` as
     `evaluate` takes it (a rule, a run, or one policy in the grid's notation); a learned policy
-    drives with its own ego-side settings in `cfg`'s traffic."""
+    drives with its own ego-side settings in `cfg`'s traffic. Ramp flow (many merging agents,
+    no ego) is refused before any work."""
+    if cfg.ramp.flowing:
+        raise ValueError(
+            f"render: scenario {cfg.name!r} runs ramp flow (ramp.flow_vph = "
+            f"{cfg.ramp.flow_vph:g}), which has no ego to follow; render records the paper's "
+            "one ramp vehicle at a time (ramp.flow_vph = 0). Measure ramp flow with "
+            "`marlmerge rampflow`"
+        )
     policy, cfg = policy_for_evaluation(policy_spec, cfg)
     highway_policy = None
     if highway is not None:
