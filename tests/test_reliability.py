@@ -514,3 +514,11 @@ def test_render_refuses_ramp_flow_before_any_work(tmp_path, capsys):
     assert main(args) == 2
     assert "render: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_cotraining_refuses_ramp_flow_before_writing_anything(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["cotrain", "cotrain", "--set", "scenario=ramp_flow", "--out", str(out)]
+    assert main(args) == 2
+    assert "scenario = 'ramp_flow' runs ramp flow (ramp.flow_vph = 600)" in capsys.readouterr().err
+    assert not out.exists()

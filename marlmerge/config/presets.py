@@ -66,8 +66,9 @@ def resolve_config(config: ScenarioConfig | str | Path | None, **overrides: Any)
 
 def run_scenario(run_cfg: Any) -> ScenarioConfig:
     """The scenario a training run's `scenario` key names, loaded; an unknown preset, a bad value
-    or a scenario its learner cannot train (`ego.join = "chosen"` needs quadq) is a `ValueError`
-    naming the key, raised before the run writes or prints anything."""
+    or a scenario its learner cannot train (`ego.join = "chosen"` needs quadq; co-training needs
+    an ego, not ramp flow) is a `ValueError` naming the key, raised before the run writes or
+    prints anything."""
     try:
         scen = resolve_config(run_cfg.scenario)
     except ValueError as err:
@@ -79,6 +80,12 @@ def run_scenario(run_cfg: Any) -> ScenarioConfig:
             "two components, which only the quadratic-Q learner (algorithm = 'quadq') takes; "
             f"{'co-training' if algorithm is None else repr(algorithm)} acts on the "
             "acceleration alone"
+        )
+    if scen.ramp.flowing and algorithm is None:
+        raise ValueError(
+            f"scenario = {run_cfg.scenario!r} runs ramp flow (ramp.flow_vph = "
+            f"{scen.ramp.flow_vph:g}), which has no ego: co-training pits highway agents "
+            "against the paper's one ramp vehicle at a time (ramp.flow_vph = 0)"
         )
     return scen
 
