@@ -522,3 +522,11 @@ def test_cotraining_refuses_ramp_flow_before_writing_anything(tmp_path, capsys):
     assert main(args) == 2
     assert "scenario = 'ramp_flow' runs ramp flow (ramp.flow_vph = 600)" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_estimate_refuses_ramp_flow_before_writing_anything(tmp_path, capsys):
+    out = tmp_path / "estimate"
+    args = ["estimate", "gap", "--scenario", "ramp_flow", "--method", "mc", "--episodes", "10"]
+    assert main([*args, "--out", str(out)]) == 2
+    assert "estimate: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
+    assert not out.exists()

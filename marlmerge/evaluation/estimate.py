@@ -416,6 +416,13 @@ class Estimator:
         settings: EstimateSettings,
         out: str | Path,
     ):
+        if cfg.ramp.flowing:
+            raise ValueError(
+                f"estimate: scenario {cfg.name!r} runs ramp flow (ramp.flow_vph = "
+                f"{cfg.ramp.flow_vph:g}), which has no ego; estimate rates the paper's one "
+                "ramp vehicle at a time (ramp.flow_vph = 0). Measure ramp flow with "
+                "`marlmerge rampflow`"
+            )
         self.policy, self.cfg, self.settings = policy, cfg, settings
         self.out = Path(out)
         self.request = {
