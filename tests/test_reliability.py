@@ -125,6 +125,16 @@ def test_weights_that_do_not_fit_the_network_name_the_file(tmp_path):
         load_policy(tmp_path / "p.pt")
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_policy_file_with_non_finite_weights_names_the_file_and_the_weight(tmp_path, bad):
+    saved = files.load(_policy(tmp_path))
+    name = next(iter(saved["policy_state"]["net"]))
+    saved["policy_state"]["net"][name].view(-1)[0] = bad
+    files.save(saved, tmp_path / "p.pt")
+    with pytest.raises(ValueError, match=f"p.pt: weight '{name}' of policy_state.net holds NaN"):
+        read_policy(tmp_path / "p.pt", "ego")
+
+
 def test_random_bytes_are_not_called_pickled_objects(tmp_path):
     path = tmp_path / "policy.pt"
     path.write_bytes(np.random.default_rng(0).bytes(4096))

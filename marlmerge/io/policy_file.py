@@ -178,6 +178,14 @@ def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
             raise ValueError(
                 f"{path}: policy_state.{key} must be an integer >= 1, got {state[key]!r}"
             )
+    net = state.get("net")
+    for name, value in (net.items() if isinstance(net, dict) else ()):
+        if hasattr(value, "is_floating_point") and value.is_floating_point():
+            if not bool(value.isfinite().all()):
+                raise ValueError(
+                    f"{path}: weight {name!r} of policy_state.net holds NaN or infinite "
+                    "values: the policy would command NaN"
+                )
     extra = state.get("extra_bounds", [])  # the join's, with ego.join = "chosen"
     if not isinstance(extra, list | tuple):
         raise ValueError(f"{path}: policy_state.extra_bounds must be a list, got {extra!r}")
