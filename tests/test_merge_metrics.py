@@ -133,3 +133,23 @@ def test_braking_after_cut_ins_follows_mobils_safe_braking():
         default.cut_ins_braking_over_b / default.cut_ins
     )
     assert default.joins_braking_over_b <= default.joins
+
+
+def test_ramp_vehicles_beyond_the_agents_are_counted_as_driven_by_idm(monkeypatch):
+    """Vehicles behind the first `MAX_RAMP_AGENTS` of a ramp drive by IDM: their steps are
+    counted, exactly (here with the agents cut to 2, so that the ramp holds more), and gap
+    acceptance on the default ramp flow has none (the entrance keeps a queue off the ramp)."""
+    from marlmerge.evaluation import ramp_flow
+    from marlmerge.sim import layout as L
+
+    monkeypatch.setattr(ramp_flow, "MAX_RAMP_AGENTS", 2)
+    core = TrafficCore(FLOW, batch_size=2, seed=0)
+    drivers = ramp_flow.RampDrivers([policy_from_spec("gap", FLOW)], [1.0], 2, 0)
+    counted, by_hand = np.zeros(2), 0
+    for _ in range(300):
+        by_hand += int(np.maximum(core.wi[:, L.WI_N_RAMP] - 2, 0).sum())
+        ramp_flow._drive(core, drivers, 1, None, None, counted)
+    assert counted[1] == by_hand > 0 and counted[0] > counted[1]
+    monkeypatch.undo()
+    r = run_ramp_flow(FLOW, "gap", hours=0.05, worlds=2, seed=1, skip_s=60)
+    assert r.ramp_steps_by_idm_share == 0.0

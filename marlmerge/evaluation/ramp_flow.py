@@ -38,12 +38,14 @@ from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.evaluation.merge_metrics import MergeTally
 from marlmerge.evaluation.registry import ShieldedPolicy, policy_for_evaluation
 from marlmerge.policies.gap_acceptance import ShieldTally
+from marlmerge.sim import layout as L
 from marlmerge.sim.core import TrafficCore
 from marlmerge.sim.state import Roster
 
 MAX_RAMP_AGENTS = 16
-"""Ramp vehicles per world that act each step (downstream first); the ramp rarely holds more, and
-any beyond drive by IDM behind their ramp leader."""
+"""Ramp vehicles per world that act each step (downstream first); the ramp rarely holds more (the
+entrance keeps a queue off it), and any beyond drive by IDM behind their ramp leader, counted in
+`RampFlowResult.ramp_steps_by_idm_share`."""
 UPSTREAM_WINDOW_M = 100.0
 """The mainline's upstream speed is measured over this length, ending at the ramp start."""
 
@@ -92,6 +94,10 @@ class RampFlowResult:
     """Mainline vehicles a ramp vehicle joined ahead of."""
     joins_braking_over_b: int
     hardest_braking_after_join_mps2: float
+    ramp_steps_by_idm_share: float = 0.0
+    """Share of the ramp vehicles' control steps on the ramp in which a vehicle was behind the
+    first `MAX_RAMP_AGENTS` of its world's ramp and drove by IDM, not by the policy (0: the
+    policy drove every ramp vehicle; only a jammed ramp holds more)."""
     shield_judged: int | None = None
     """Behind `@shield` / `@shield-left`: the ramp vehicles' commands the shield judged (on the
     ramp, in the measurement window; `GapShield.tally`); None without a shield."""
@@ -126,6 +132,17 @@ def merge_line(row: dict[str, Any]) -> str:
         f"{row['hardest_braking_after_cut_in_mps2']:.1f}), after {row['joins']} joins "
         f"{row['joins_braking_over_b']} (hardest {row['hardest_braking_after_join_mps2']:.1f})"
         + _shield_part(row)
+        + _idm_part(row)
+    )
+
+
+def _idm_part(row: dict[str, Any]) -> str:
+    share = row.get("ramp_steps_by_idm_share") or 0.0
+    if share <= 0.0:
+        return ""
+    return (
+        f"; {100 * share:.2f} % of the ramp vehicles' steps drove by IDM (more than "
+        f"{MAX_RAMP_AGENTS} on the ramp)"
     )
 
 
@@ -282,9 +299,10 @@ def run_ramp_flow(
     shields = [p.shield.tally for p in policies if isinstance(p, ShieldedPolicy)]
     shields_before = [replace(t) for t in shields]
     speeds = np.zeros(4)  # summed speed and samples: merge zone, upstream
+    ramp_steps = np.zeros(2)  # ramp vehicle-steps: all, and those beyond the agents (IDM)
     tally = MergeTally(cfg, worlds)
     n_steps = int(round(hours * 3600.0 / step_s))
-    _drive(core, drivers, n_steps, speeds, tally)
+    _drive(core, drivers, n_steps, speeds, tally, ramp_steps)
     after = _counters(core)
     result = _result(cfg, driver, worlds, n_steps * step_s, before, after, speeds, tally)
     window = [t.since(t0) for t, t0 in zip(shields, shields_before, strict=True)]
@@ -293,6 +311,7 @@ def run_ramp_flow(
         result,
         shield_judged=pooled.judged if shields else None,
         shield_changed_share=pooled.share,
+        ramp_steps_by_idm_share=float(ramp_steps[1] / max(ramp_steps[0], 1.0)),
         wall_s=time.perf_counter() - start,
     )
 
@@ -314,14 +333,20 @@ def _drive(
     n_steps: int,
     speeds: np.ndarray | None,
     tally: MergeTally | None,
+    ramp_steps: np.ndarray | None = None,
 ) -> None:
     """`n_steps` control steps of every world, the ramp agents driven by `drivers`; with
-    `speeds` and `tally`, the mainline's speeds, lane changes and braking sampled after each."""
+    `speeds` and `tally`, the mainline's speeds, lane changes and braking sampled after each;
+    with `ramp_steps` [2], the ramp vehicles' steps counted: all, and those of vehicles beyond
+    the first `MAX_RAMP_AGENTS` (which drive by IDM)."""
     nan = np.full(core.batch_size, np.nan)
     road = core.cfg.road
     upstream = (road.x_ramp_start_m - UPSTREAM_WINDOW_M, road.x_ramp_start_m)
     for _ in range(n_steps):
         roster, obs = core.ramp_agents(MAX_RAMP_AGENTS)
+        if ramp_steps is not None:
+            on_ramp = core.wi[:, L.WI_N_RAMP]  # [B]
+            ramp_steps += (on_ramp.sum(), np.maximum(on_ramp - MAX_RAMP_AGENTS, 0).sum())
         cmd = drivers.commands(roster, obs)
         core.rollout(nan, roster=roster, roster_accel=cmd[..., 0], roster_join=cmd[..., 1])
         if tally is not None:

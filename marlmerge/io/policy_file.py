@@ -179,7 +179,7 @@ def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
                 f"{path}: policy_state.{key} must be an integer >= 1, got {state[key]!r}"
             )
     net = state.get("net")
-    for name, value in (net.items() if isinstance(net, dict) else ()):
+    for name, value in net.items() if isinstance(net, dict) else ():
         if hasattr(value, "is_floating_point") and value.is_floating_point():
             if not bool(value.isfinite().all()):
                 raise ValueError(
