@@ -540,3 +540,13 @@ def test_estimate_refuses_ramp_flow_before_writing_anything(tmp_path, capsys):
     assert main([*args, "--out", str(out)]) == 2
     assert "estimate: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("episodes", "worlds", "name"), [(0, 4, "episodes"), (4, 0, "worlds")])
+def test_greedy_rollouts_refuse_no_episodes_or_no_worlds(episodes, worlds, name):
+    from marlmerge.evaluation.registry import policy_from_spec
+    from marlmerge.evaluation.rollout import evaluate_policy
+
+    cfg = ScenarioConfig()
+    with pytest.raises(ValueError, match=f"{name} must be an integer >= 1, got 0"):
+        evaluate_policy(policy_from_spec("gap", cfg), cfg, episodes, 0, worlds)

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.evaluation.metrics import EpisodeTrajectory, TrajectoryRecorder, wilson_interval
 from marlmerge.evaluation.plausibility import HighwayTally, summarize_highway
 from marlmerge.policies.gap_acceptance import GapShield, ShieldTally
@@ -75,6 +75,7 @@ def rollout_first_egos(
     `lapse_branches` (one per episode, with a proposal that splits lapses): the branch each
     episode runs (`TrafficCore.set_lapse_branches`; -1: the trunk).
     """
+    episodes, worlds = check_count("episodes", episodes), check_count("worlds", worlds)
     rec: dict[str, list[np.ndarray]] = {
         "outcome": [],
         "time_s": [],
