@@ -475,6 +475,9 @@ def _demands(text: str) -> list[float]:
     bad = [v for v in values if not 0 < v <= 3600]
     if not values or bad:
         raise ValueError(f"--ramp-flow: each demand must be in (0, 3600] veh/h, got {text!r}")
+    twice = [v for i, v in enumerate(values) if v in values[:i]]
+    if twice:
+        raise ValueError(f"--ramp-flow: the demand {twice[0]:g} is given twice in {text!r}")
     return values
 
 

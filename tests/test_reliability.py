@@ -550,3 +550,18 @@ def test_greedy_rollouts_refuse_no_episodes_or_no_worlds(episodes, worlds, name)
     cfg = ScenarioConfig()
     with pytest.raises(ValueError, match=f"{name} must be an integer >= 1, got 0"):
         evaluate_policy(policy_from_spec("gap", cfg), cfg, episodes, 0, worlds)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["rampflow", "gap", "--scenario", "ramp_flow", "--hours", "inf"], "hours must be finite"),
+        (["rampflow", "gap", "--scenario", "ramp_flow", "--ramp-flow", "200,200"], "given twice"),
+        (["stress", "gap", "--budget-s", "inf"], "budget_s must be finite and > 0, got inf"),
+        (["grid", "--policy", "gap", "--condition", "ramp_flow", "--ramp-hours", "inf"], "finite"),
+    ],
+)
+def test_endless_or_repeated_measurements_are_refused(tmp_path, capsys, args, message):
+    assert main([*args, "--out", str(tmp_path / "out")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -332,9 +332,10 @@ def run_grid(
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if episodes < 1 or worlds < 1:
         raise ValueError(f"episodes and worlds must be >= 1, got {episodes} and {worlds}")
-    if not ramp_hours > 0 or ramp_worlds < 1:
+    if not 0 < ramp_hours < math.inf or ramp_worlds < 1:
         raise ValueError(
-            f"ramp_hours must be > 0 and ramp_worlds >= 1, got {ramp_hours} and {ramp_worlds}"
+            f"ramp_hours must be finite and > 0 and ramp_worlds >= 1, got {ramp_hours} and "
+            f"{ramp_worlds}"
         )
     every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
     refuse_twice("policy", [p.name for p in policies])

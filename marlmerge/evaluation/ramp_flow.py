@@ -285,8 +285,11 @@ def run_ramp_flow(
     `seed`."""
     import time
 
-    if not hours > 0 or not skip_s >= 0:
-        raise ValueError(f"hours must be > 0 and skip_s >= 0, got hours={hours}, skip_s={skip_s}")
+    if not 0 < hours < math.inf or not 0 <= skip_s < math.inf:
+        raise ValueError(
+            f"hours must be finite and > 0 and skip_s finite and >= 0, got hours={hours}, "
+            f"skip_s={skip_s}"
+        )
     worlds = check_count("worlds", worlds)
     mix = parse_mix(driver)
     policies, cfg = agents_scenario(cfg, [spec for spec, _ in mix])

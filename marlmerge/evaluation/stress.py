@@ -31,6 +31,7 @@ road of each of the three worst regions (with the `[video]` extra).
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -93,8 +94,8 @@ class StressSettings:
             raise ValueError(f"elite_fraction must be in (0, 0.5], got {self.elite_fraction}")
         if self.verify_episodes < 1:
             raise ValueError(f"verify_episodes must be >= 1, got {self.verify_episodes}")
-        if not self.budget_s > 0:
-            raise ValueError(f"budget_s must be > 0, got {self.budget_s}")
+        if not 0 < self.budget_s < math.inf:
+            raise ValueError(f"budget_s must be finite and > 0, got {self.budget_s}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
 
