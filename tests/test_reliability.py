@@ -565,3 +565,12 @@ def test_endless_or_repeated_measurements_are_refused(tmp_path, capsys, args, me
     assert main([*args, "--out", str(tmp_path / "out")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_view_sizes_and_the_proposal_are_checked_by_type():
+    from marlmerge.views.torchrl_env import BatchedMergeEnv
+
+    with pytest.raises(ValueError, match="max_cycles must be an integer >= 1, got 2.5"):
+        parallel_env(max_cycles=2.5)
+    with pytest.raises(ValueError, match="proposal must be None or a marlmerge.sim.proposal"):
+        BatchedMergeEnv(num_worlds=2, proposal="x")

@@ -126,6 +126,10 @@ class TrafficCore:
         self.cfg = cfg
         self.fixed_scenarios = scenarios is not None
         """Every world runs a scenario it was given (`scenarios`)."""
+        if proposal is not None and not isinstance(proposal, Proposal):
+            raise ValueError(
+                f"proposal must be None or a marlmerge.sim.proposal.Proposal, got {proposal!r}"
+            )
         if proposal is not None and cfg.ramp.flowing:
             raise ValueError(
                 f"proposal: ramp.flow_vph = {cfg.ramp.flow_vph} runs ramp flow, which has no ego "

@@ -63,7 +63,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import AECEnv, ParallelEnv
 
-from marlmerge.config import ScenarioConfig, require_ego
+from marlmerge.config import ScenarioConfig, check_count, require_ego
 from marlmerge.config.presets import find_preset, resolve_config  # noqa: F401  (their home: presets)
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
 from marlmerge.sim.action import action_bounds, action_size, agent_actions
@@ -103,8 +103,8 @@ class RampMergeParallelEnv(ParallelEnv):
             raise ValueError(
                 f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}"
             )
-        if max_cycles is not None and (isinstance(max_cycles, bool) or max_cycles < 1):
-            raise ValueError(f"max_cycles must be None or an integer >= 1, got {max_cycles!r}")
+        if max_cycles is not None:
+            check_count("max_cycles", max_cycles)
         self.cfg = resolve_config(config, **(overrides or {}))
         require_ego(self.cfg, "RampMergeParallelEnv")
         self.render_mode = render_mode

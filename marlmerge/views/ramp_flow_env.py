@@ -93,8 +93,7 @@ class RampFlowParallelEnv(ParallelEnv):
         if max_agents is None:
             expected = max_cycles * self._step_s * self.cfg.ramp.flow_vph / 3600.0
             max_agents = int(np.ceil(1.5 * expected)) + 20
-        if isinstance(max_agents, bool) or not isinstance(max_agents, int) or max_agents < 1:
-            raise ValueError(f"max_agents must be None or an integer >= 1, got {max_agents!r}")
+        max_agents = check_count("max_agents", max_agents)
         self.max_cycles = max_cycles
         self.render_mode = None
         self.possible_agents = [f"ramp_{i}" for i in range(max_agents)]
