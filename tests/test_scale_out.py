@@ -158,6 +158,10 @@ def test_parse_seeds_and_bad_sweeps():
     assert parse_seeds("0-3,7,2") == [0, 1, 2, 3, 7]
     with pytest.raises(ValueError, match="--seeds"):
         parse_seeds("a-b")
+    with pytest.raises(ValueError, match="the range '3-1' in '0,3-1' is empty"):
+        parse_seeds("0,3-1")
+    with pytest.raises(ValueError, match="names more than 10,000 seeds"):
+        parse_seeds("0-99999999999")  # refused before the range is expanded
     with pytest.raises(ValueError, match="--backend"):
         sweep("quick", [0], "x", backend="threads")
     with pytest.raises(ValueError, match="not --set seed"):

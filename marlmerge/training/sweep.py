@@ -39,18 +39,34 @@ _T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2
         2.060, 2.056, 2.052, 2.048, 2.045, 2.042)  # fmt: skip
 
 
+MAX_SEEDS = 10_000
+"""Seeds one `--seeds` spec may name (a range is checked before it is expanded)."""
+
+
 def parse_seeds(text: str) -> list[int]:
-    """`0-9`, `3`, `0,2,5` or `0-3,10-12` -> the seeds, each once, in order."""
+    """`0-9`, `3`, `0,2,5` or `0-3,10-12` -> the seeds, each once, in order (at most
+    `MAX_SEEDS`)."""
     seeds: list[int] = []
-    try:
-        for part in text.split(","):
-            lo, dash, hi = part.strip().partition("-")
-            seeds += list(range(int(lo), int(hi) + 1)) if dash else [int(lo)]
-    except ValueError:
-        raise ValueError(f"--seeds: expected e.g. 0-9 or 0,2,5, got {text!r}") from None
+    for part in text.split(","):
+        seeds += _seed_part(part.strip(), text, MAX_SEEDS - len(seeds))
     if not seeds or min(seeds) < 0:
         raise ValueError(f"--seeds: need one or more seeds >= 0, got {text!r}")
     return list(dict.fromkeys(seeds))
+
+
+def _seed_part(part: str, text: str, room: int) -> list[int]:
+    """One comma-separated part of the `--seeds` spec `text`, N or LO-HI; a range is checked
+    against the `room` left before it is expanded."""
+    lo, dash, hi = part.partition("-")
+    try:
+        first, last = int(lo), int(hi if dash else lo)
+    except ValueError:
+        raise ValueError(f"--seeds: expected e.g. 0-9 or 0,2,5, got {text!r}") from None
+    if last < first:
+        raise ValueError(f"--seeds: the range {part!r} in {text!r} is empty")
+    if last - first + 1 > room:
+        raise ValueError(f"--seeds: {text!r} names more than {MAX_SEEDS:,} seeds")
+    return list(range(first, last + 1))
 
 
 @dataclass(frozen=True)
