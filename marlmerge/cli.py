@@ -384,7 +384,7 @@ def estimate_cmd(args: argparse.Namespace) -> int:
     check_estimate_flags(args)
     settings = _settings(EstimateSettings, args)
     scen = resolve_config(args.scenario) if args.scenario else None
-    from marlmerge.evaluation.registry import policy_for_evaluation
+    from marlmerge.evaluation.registry import policy_for_evaluation, saved_files_of
 
     policy, scen = policy_for_evaluation(args.policy, scen)
     _note_bare_shield(args.policy)
@@ -394,7 +394,8 @@ def estimate_cmd(args: argparse.Namespace) -> int:
             "fewer episodes for the same interval there (docs/evaluation.md)",
             file=sys.stderr,
         )
-    report = Estimator(policy, args.policy, scen, settings, args.out).run()
+    files = saved_files_of(args.policy)
+    report = Estimator(policy, args.policy, scen, settings, args.out, files).run()
     lo, hi = report["ci95"]
     print(
         f"{report['event']} rate of {args.policy} on {report['scenario']} ({report['method']}): "

@@ -574,3 +574,47 @@ def test_view_sizes_and_the_proposal_are_checked_by_type():
         parallel_env(max_cycles=2.5)
     with pytest.raises(ValueError, match="proposal must be None or a marlmerge.sim.proposal"):
         BatchedMergeEnv(num_worlds=2, proposal="x")
+
+
+def test_a_grid_cell_is_keyed_by_its_saved_policy_and_its_scenario_as_loaded(tmp_path):
+    """A cached grid cell is reused only for the same policy file and scenario: a run trained
+    again into the same folder, or a preset edited, gives a new key (and a new result)."""
+    from marlmerge.evaluation.grid import Cell, parse_condition
+    from marlmerge.evaluation.registry import parse_policy
+
+    run = tmp_path / "run"
+    run.mkdir()
+    _policy(run).rename(run / "policy.pt")
+    preset = tmp_path / "mine.toml"
+    preset.write_text("[traffic]\nflow_vph_per_lane = 400.0\n")
+
+    def key() -> str:
+        spec = parse_policy(f"quadq:{run}")
+        return Cell(spec, str(run), parse_condition(str(preset)), None, 10, 0, 10).key
+
+    first = key()
+    assert key() == first
+    saved = files.load(run / "policy.pt")
+    name = next(iter(saved["policy_state"]["net"]))
+    saved["policy_state"]["net"][name] += 1.0  # trained again
+    files.save(saved, run / "policy.pt")
+    retrained = key()
+    assert retrained != first
+    preset.write_text("[traffic]\nflow_vph_per_lane = 500.0\n")
+    assert key() != retrained
+
+
+def test_estimate_does_not_resume_onto_a_policy_trained_again(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    _policy(run).rename(run / "policy.pt")
+    args = ["estimate", str(run), "--scenario", "light", "--method", "mc", "--episodes", "4"]
+    args += ["--worlds", "4", "--out", str(tmp_path / "est")]
+    assert main(args) == 0
+    assert main(args) == 0  # the same policy: the batches are reused
+    saved = files.load(run / "policy.pt")
+    name = next(iter(saved["policy_state"]["net"]))
+    saved["policy_state"]["net"][name] += 1.0
+    files.save(saved, run / "policy.pt")
+    assert main(args) == 2
+    assert "whose saved policy has changed since" in capsys.readouterr().err

@@ -415,7 +415,10 @@ class Estimator:
         cfg: ScenarioConfig,
         settings: EstimateSettings,
         out: str | Path,
+        policy_files: str = "",
     ):
+        """`policy_files`: a digest of the policy's saved files (`registry.saved_files_of`), so
+        that a run trained again into the same folder does not reuse the old run's batches."""
         if cfg.ramp.flowing:
             raise ValueError(
                 f"estimate: scenario {cfg.name!r} runs ramp flow (ramp.flow_vph = "
@@ -428,6 +431,7 @@ class Estimator:
         self.request = {
             "version": ESTIMATE_VERSION,
             "policy": policy_name,
+            "policy_files": policy_files,
             "scenario": to_dict(cfg),
             "settings": asdict(settings),
         }
@@ -456,6 +460,11 @@ class Estimator:
                 raise ValueError(
                     f"{self.out} holds an estimate of another {key}; use another --out or delete it"
                 )
+        if old.get("policy_files", self.request["policy_files"]) != self.request["policy_files"]:
+            raise ValueError(
+                f"{self.out} holds an estimate of {old['policy']!r} whose saved policy has changed "
+                "since (trained again?); use another --out or delete it"
+            )
         mine = self.request["settings"]
         for key, value in sorted(old.get("settings", {}).items()):
             if key not in STOP_KEYS and mine.get(key) != value:

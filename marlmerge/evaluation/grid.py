@@ -55,7 +55,8 @@ from marlmerge.evaluation.registry import (  # noqa: F401 - the grid's policies,
     scenario_for,
 )
 from marlmerge.evaluation.rollout import rollout_first_egos
-from marlmerge.io.files import write_text
+from marlmerge.io.files import saved_digest, write_text
+from marlmerge.io.policy_file import DEFAULT_FILE
 
 
 def condition_label(cfg: ScenarioConfig) -> str:
@@ -178,8 +179,16 @@ class Cell:
 
     @property
     def key(self) -> str:
-        """A name for the cell's result file, fixed by everything the result depends on."""
+        """A name for the cell's result file, fixed by everything the result depends on: the
+        arguments, the condition's scenario as loaded now, and the saved policies' contents (a
+        preset edited or a run trained again into the same folder gives a new key)."""
+        saved = (
+            saved_digest(self.run, DEFAULT_FILE["ego"]),
+            saved_digest(self.highway, DEFAULT_FILE["highway"]),
+        )
+        scenario = to_dict(self.condition.scenario())
         text = repr((self.policy, self.run, self.condition, self.highway, self.episodes, self.seed))
+        text += repr((saved, scenario))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

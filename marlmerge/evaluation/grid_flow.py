@@ -18,8 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from marlmerge.config import to_dict
 from marlmerge.evaluation.backends import run_tasks
-from marlmerge.io.files import write_text
+from marlmerge.io.files import saved_digest, write_text
+from marlmerge.io.policy_file import DEFAULT_FILE
 
 if TYPE_CHECKING:
     from marlmerge.evaluation.grid import Condition
@@ -42,7 +44,12 @@ class FlowCell:
 
     @property
     def key(self) -> str:
+        """The cell's result file's name: its arguments, the scenario as loaded now and the
+        saved policy's contents (as the episode cells' `Cell.key`)."""
         text = repr((self.policy, self.run, self.condition, self.hours, self.worlds, self.seed))
+        text += repr(
+            (saved_digest(self.run, DEFAULT_FILE["ego"]), to_dict(self.condition.scenario()))
+        )
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

@@ -34,6 +34,8 @@ import torch
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.rollout import EgoPolicy
+from marlmerge.io.files import saved_digest
+from marlmerge.io.policy_file import DEFAULT_FILE
 from marlmerge.sim.observation import shows_left_lane
 
 if TYPE_CHECKING:
@@ -198,6 +200,16 @@ def policy_for_evaluation(
     run = parsed.runs[0] if parsed.runs else None
     scenario = scenario_for(parsed, run, scenario or own(run))
     return make_policy(parsed, run, scenario), scenario
+
+
+def saved_files_of(spec: str) -> str:
+    """A digest of the saved policy files a policy spec drives (`io.files.saved_digest`, one per
+    run, comma-separated; "" for a rule)."""
+    if spec in RULE_POLICIES:
+        return ""
+    if Path(spec).exists():
+        return saved_digest(spec, DEFAULT_FILE["ego"])
+    return ",".join(saved_digest(run, DEFAULT_FILE["ego"]) for run in parse_policy(spec).runs)
 
 
 def bare_shield_note(spec: str) -> str | None:

@@ -12,6 +12,7 @@ of a write killed midway is removed by the next write of the same file.
 from __future__ import annotations
 
 import glob
+import hashlib
 import os
 import pickle
 import re
@@ -137,3 +138,15 @@ def load(path: str | Path, what: str = "file") -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ValueError(f"{path}: not a marlmerge {what} (holds a {type(data).__name__})")
     return _restore(data)
+
+
+def saved_digest(path: str | Path | None, name: str) -> str:
+    """A short SHA-256 of the saved file that `path` names: the file itself, or `name` inside a
+    run folder ("" for None, or a path that is neither, such as the edge driver's name). A
+    result cached under a key that holds it is recomputed when the file changes, as when a
+    run is trained again into the same folder."""
+    if path is None:
+        return ""
+    p = Path(path)
+    p = p if p.is_file() else p / name
+    return hashlib.sha256(p.read_bytes()).hexdigest()[:16] if p.is_file() else ""
