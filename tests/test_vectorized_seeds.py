@@ -168,7 +168,8 @@ def test_a_killed_vectorised_run_resumes_exactly(tmp_path, capsys):
         ("0-", "expected e.g. 0-9"),
         ("a", "expected e.g. 0-9"),
         ("-1", "expected e.g. 0-9"),
-        ("3-1", "need one or more seeds"),
+        ("3-1", "the range '3-1' in '3-1' is empty"),
+        ("0-99999999999", "names more than 10,000 seeds"),
     ],
 )
 def test_bad_seed_specs_are_named(tmp_path, capsys, spec, message):
