@@ -518,27 +518,21 @@ def test_an_aec_env_refuses_a_bad_action_at_its_agents_own_turn():
         flow.step(np.array([np.inf]))
 
 
-def test_render_refuses_ramp_flow_before_any_work(tmp_path, capsys):
-    out = tmp_path / "clip.gif"
-    args = ["render", "gap", "--scenario", "ramp_flow", "--episodes", "1", "--out", str(out)]
-    assert main(args) == 2
-    assert "render: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
-    assert not out.exists()
-
-
-def test_cotraining_refuses_ramp_flow_before_writing_anything(tmp_path, capsys):
-    out = tmp_path / "run"
-    args = ["cotrain", "cotrain", "--set", "scenario=ramp_flow", "--out", str(out)]
-    assert main(args) == 2
-    assert "scenario = 'ramp_flow' runs ramp flow (ramp.flow_vph = 600)" in capsys.readouterr().err
-    assert not out.exists()
-
-
-def test_estimate_refuses_ramp_flow_before_writing_anything(tmp_path, capsys):
-    out = tmp_path / "estimate"
-    args = ["estimate", "gap", "--scenario", "ramp_flow", "--method", "mc", "--episodes", "10"]
+@pytest.mark.parametrize(
+    ("args", "who"),
+    [
+        (["render", "gap", "--scenario", "ramp_flow", "--episodes", "1"], "render: scenario"),
+        (["cotrain", "cotrain", "--set", "scenario=ramp_flow"], "co-training: scenario ="),
+        (["estimate", "gap", "--scenario", "ramp_flow", "--method", "mc"], "estimate: scenario"),
+    ],
+)
+def test_ramp_flow_is_refused_where_one_ego_is_followed_before_any_file(
+    tmp_path, capsys, args, who
+):
+    out = tmp_path / ("clip.gif" if args[0] == "render" else "run")
     assert main([*args, "--out", str(out)]) == 2
-    assert "estimate: scenario 'ramp_flow' runs ramp flow" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{who} 'ramp_flow': ramp.flow_vph = 600.0 runs ramp flow, which has no ego" in err
     assert not out.exists()
 
 

@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 
 from marlmerge.config.codec import from_dict, read_toml, set_dotted
 from marlmerge.config.cotraining import CoTrainConfig
-from marlmerge.config.scenario import ScenarioConfig, load_scenario
+from marlmerge.config.scenario import ScenarioConfig, load_scenario, require_ego
 from marlmerge.config.training import FLAT_KEYS, TrainConfig
 
 KINDS = ("envs", "trainers")
@@ -81,12 +81,8 @@ def run_scenario(run_cfg: Any) -> ScenarioConfig:
             f"{'co-training' if algorithm is None else repr(algorithm)} acts on the "
             "acceleration alone"
         )
-    if scen.ramp.flowing and algorithm is None:
-        raise ValueError(
-            f"scenario = {run_cfg.scenario!r} runs ramp flow (ramp.flow_vph = "
-            f"{scen.ramp.flow_vph:g}), which has no ego: co-training pits highway agents "
-            "against the paper's one ramp vehicle at a time (ramp.flow_vph = 0)"
-        )
+    if algorithm is None:  # co-training pits highway agents against the one ego
+        require_ego(scen, f"co-training: scenario = {run_cfg.scenario!r}")
     return scen
 
 

@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from marlmerge.config import ScenarioConfig, to_dict
+from marlmerge.config import ScenarioConfig, require_ego, to_dict
 from marlmerge.evaluation.metrics import event_mask, weighted_mean_estimate, wilson_interval
 from marlmerge.evaluation.splitting import split_batch, split_estimate, split_proposal
 from marlmerge.io.files import load, save, write_text
@@ -419,13 +419,7 @@ class Estimator:
     ):
         """`policy_files`: a digest of the policy's saved files (`registry.saved_files_of`), so
         that a run trained again into the same folder does not reuse the old run's batches."""
-        if cfg.ramp.flowing:
-            raise ValueError(
-                f"estimate: scenario {cfg.name!r} runs ramp flow (ramp.flow_vph = "
-                f"{cfg.ramp.flow_vph:g}), which has no ego; estimate rates the paper's one "
-                "ramp vehicle at a time (ramp.flow_vph = 0). Measure ramp flow with "
-                "`marlmerge rampflow`"
-            )
+        require_ego(cfg, f"estimate: scenario {cfg.name!r}")
         self.policy, self.cfg, self.settings = policy, cfg, settings
         self.out = Path(out)
         self.request = {

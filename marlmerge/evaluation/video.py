@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from marlmerge.config import ScenarioConfig
+from marlmerge.config import ScenarioConfig, require_ego
 from marlmerge.evaluation.registry import policy_for_evaluation
 from marlmerge.sim import OUTCOME_NAMES, OUTCOME_NONE, TrafficCore
 from marlmerge.views.render import render_scene, write_video
@@ -89,13 +89,7 @@ def render_episodes(
     `evaluate` takes it (a rule, a run, or one policy in the grid's notation); a learned policy
     drives with its own ego-side settings in `cfg`'s traffic. Ramp flow (many merging agents,
     no ego) is refused before any work."""
-    if cfg.ramp.flowing:
-        raise ValueError(
-            f"render: scenario {cfg.name!r} runs ramp flow (ramp.flow_vph = "
-            f"{cfg.ramp.flow_vph:g}), which has no ego to follow; render records the paper's "
-            "one ramp vehicle at a time (ramp.flow_vph = 0). Measure ramp flow with "
-            "`marlmerge rampflow`"
-        )
+    require_ego(cfg, f"render: scenario {cfg.name!r}")
     policy, cfg = policy_for_evaluation(policy_spec, cfg)
     highway_policy = None
     if highway is not None:
