@@ -447,6 +447,14 @@ def test_a_dotted_key_below_a_value_says_the_value_is_not_a_table(capsys):
     assert "'scenario' is a value, not a table" in capsys.readouterr().err
 
 
+def _refused_before_any_file(args: list[str], out: Path, message: str, capsys) -> None:
+    """`marlmerge ARGS --out OUT` exits with 2, its error holds `message`, and OUT was not
+    written."""
+    assert main([*args, "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -458,10 +466,7 @@ def test_a_dotted_key_below_a_value_says_the_value_is_not_a_table(capsys):
 def test_the_grid_refuses_a_policy_or_condition_given_twice(tmp_path, capsys, args, message):
     args = ["--policy", "gap", *args] if "--policy" not in args else args
     args = [*args, "--condition", "light"] if "--condition" not in args else args
-    out = tmp_path / "grid"
-    assert main(["grid", *args, "--episodes", "1", "--out", str(out)]) == 2
-    assert message in capsys.readouterr().err
-    assert not out.exists()  # refused before any file
+    _refused_before_any_file(["grid", *args, "--episodes", "1"], tmp_path / "grid", message, capsys)
 
 
 @pytest.mark.parametrize(
@@ -475,12 +480,9 @@ def test_the_grid_refuses_a_policy_or_condition_given_twice(tmp_path, capsys, ar
 )
 def test_a_ray_address_is_checked_before_any_work(tmp_path, capsys, backend, address, message):
     pytest.importorskip("ray")
-    out = tmp_path / "grid"
     args = ["grid", "--policy", "gap", "--condition", "light", "--episodes", "1"]
-    args += ["--backend", backend, "--address", address, "--out", str(out)]
-    assert main(args) == 2
-    assert message in capsys.readouterr().err
-    assert not out.exists()
+    args += ["--backend", backend, "--address", address]
+    _refused_before_any_file(args, tmp_path / "grid", message, capsys)
 
 
 @pytest.mark.parametrize(
@@ -492,10 +494,8 @@ def test_a_ray_address_is_checked_before_any_work(tmp_path, capsys, backend, add
     ],
 )
 def test_estimate_refuses_flags_its_method_would_ignore(tmp_path, capsys, flags, message):
-    out = tmp_path / "estimate"
-    assert main(["estimate", "gap", "--scenario", "lapses", *flags, "--out", str(out)]) == 2
-    assert message in capsys.readouterr().err
-    assert not out.exists()
+    args = ["estimate", "gap", "--scenario", "lapses", *flags]
+    _refused_before_any_file(args, tmp_path / "estimate", message, capsys)
 
 
 def test_an_aec_env_refuses_a_bad_action_at_its_agents_own_turn():
@@ -530,10 +530,8 @@ def test_ramp_flow_is_refused_where_one_ego_is_followed_before_any_file(
     tmp_path, capsys, args, who
 ):
     out = tmp_path / ("clip.gif" if args[0] == "render" else "run")
-    assert main([*args, "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    assert f"{who} 'ramp_flow': ramp.flow_vph = 600.0 runs ramp flow, which has no ego" in err
-    assert not out.exists()
+    message = f"{who} 'ramp_flow': ramp.flow_vph = 600.0 runs ramp flow, which has no ego"
+    _refused_before_any_file(args, out, message, capsys)
 
 
 @pytest.mark.parametrize(("episodes", "worlds", "name"), [(0, 4, "episodes"), (4, 0, "worlds")])
@@ -556,9 +554,7 @@ def test_greedy_rollouts_refuse_no_episodes_or_no_worlds(episodes, worlds, name)
     ],
 )
 def test_endless_or_repeated_measurements_are_refused(tmp_path, capsys, args, message):
-    assert main([*args, "--out", str(tmp_path / "out")]) == 2
-    assert message in capsys.readouterr().err
-    assert not (tmp_path / "out").exists()
+    _refused_before_any_file(args, tmp_path / "out", message, capsys)
 
 
 def test_view_sizes_and_the_proposal_are_checked_by_type():
