@@ -657,7 +657,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--highway",
         default=None,
         help="a saved highway policy (run folder or highway_policy.pt) driving the highway "
-        "agents, or 'edge': the scripted driver at a plausible envelope's edge",
+        "agents, or a scripted driver: 'edge' (at a plausible envelope's edge) or 'pace' "
+        "(keeps beside the ramp vehicle)",
     )
     e.add_argument(
         "--fairness",
@@ -844,7 +845,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--view", choices=("merge", "follow"), default="merge")
     r.add_argument(
-        "--highway", default=None, help="a saved highway policy driving the agents, or 'edge'"
+        "--highway", default=None, help="a saved highway policy driving the agents, edge or pace"
     )
     r.add_argument("--out", default="runs/episode.mp4", help="video file (.mp4 or .gif)")
     r.set_defaults(func=render_cmd)

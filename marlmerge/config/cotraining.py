@@ -13,9 +13,10 @@ PROFILES = {"adversarial": 1.0, "cooperative": -1.0}
 PHASES = ("pretrain", "adversary", "ego")
 HIGHWAY_ALGORITHMS = ("quadq", "ppo")
 """The highway group's learners: the paper's quadratic Q (off-policy) or PPO (`[ppo]`)."""
-HIGHWAY_ACTIONS = ("accel_offset", "desired_speed")
+HIGHWAY_ACTIONS = ("accel_offset", "desired_speed", "pace_offset")
 """What a learned highway driver chooses (`marlmerge.learners.highway`): an adjustment to its
-IDM acceleration, or the desired speed its IDM drives towards (PPO only)."""
+IDM acceleration, the desired speed its IDM drives towards (PPO only), or an adjustment to the
+scripted pacing driver's acceleration."""
 HIGHWAY_ENVELOPES = ("none", "safe")
 """What limits a learned highway driver besides its action bounds
 (`marlmerge.policies.envelope`): nothing, or a plausible driver's envelope."""
@@ -118,7 +119,10 @@ class CoTrainConfig(RunConfig):
     """"accel_offset": a learned driver is IDM plus an adjustment in +-3 m/s^2 each step;
     "desired_speed" (PPO only): it picks, each step, the desired speed its IDM drives towards,
     as a factor of the limit in `highway_speed_factor_bounds`. Slower or faster drivers are
-    what it can be, never a car that stops dead or brakes out of the blue."""
+    what it can be, never a car that stops dead or brakes out of the blue. "pace_offset": the
+    pacing driver (`marlmerge.learners.highway.pacing_accel`: it keeps beside the ramp vehicle
+    on the ramp, closes other gaps, lets a waiting ramp vehicle in) plus an adjustment in
+    +-3 m/s^2, so that an untrained network drives as that driver does."""
     highway_speed_factor_bounds: tuple[float, float] = num((0.5, 1.1), 0.1, 2.0, ordered=True)
     """"desired_speed": the range of the chosen desired speed, x the speed limit."""
     highway_envelope: str = "none"

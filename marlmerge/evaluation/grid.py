@@ -89,10 +89,10 @@ class Condition:
 
 def parse_condition(spec: str) -> Condition:
     """`PRESET`, `[label=]PRESET+highway:GLOB` (GLOB matches run folders holding a
-    `highway_policy.pt`, or such files; `edge`: the scripted edge driver,
-    `marlmerge.learners.highway.edge_driver`) or `[label=]PRESET+sensing:SENSING_PRESET` (the ego's
-    sensor of that preset's `[sensing]` on the preset's roads)."""
-    from marlmerge.learners.highway import EDGE_DRIVER
+    `highway_policy.pt`, or such files; `edge` or `pace`: a scripted driver,
+    `marlmerge.learners.highway.SCRIPTED_DRIVERS`) or `[label=]PRESET+sensing:SENSING_PRESET` (the
+    ego's sensor of that preset's `[sensing]` on the preset's roads)."""
+    from marlmerge.learners.highway import SCRIPTED_DRIVERS
 
     label, _, body = spec.rpartition("=")
     preset, plus, learned = body.partition("+")
@@ -108,8 +108,9 @@ def parse_condition(spec: str) -> Condition:
             f"unknown condition {spec!r} (use PRESET, [label=]PRESET+highway:GLOB or "
             "[label=]PRESET+sensing:PRESET)"
         )
-    if pattern == EDGE_DRIVER:
-        return Condition(preset, label or f"{condition_label(scen)} + edge drivers", (pattern,))
+    if pattern in SCRIPTED_DRIVERS:
+        named = {"edge": "edge drivers", "pace": "pacing drivers"}[pattern]
+        return Condition(preset, label or f"{condition_label(scen)} + {named}", (pattern,))
     found = tuple(
         m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")
     ) or (pattern,)

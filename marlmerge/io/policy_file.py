@@ -6,8 +6,9 @@ A policy file is a `marlmerge.io.files` file (tensors and plain data only, never
     version            1
     group              "ego" (the ramp vehicle) or "highway" (learned mainline drivers)
     algorithm          "quadq", "dqn" or "td3" (ego); "quadq-residual" or "ppo-residual"
-                       (highway: IDM plus a learned adjustment) or "ppo-speed" (highway: IDM
-                       at a learned desired speed)
+                       (highway: IDM plus a learned adjustment), "ppo-speed" (highway: IDM
+                       at a learned desired speed), "quadq-pace" or "ppo-pace" (highway: the
+                       pacing driver plus a learned adjustment)
     observation        {"features": [names], "size": n}: the layout the network reads
                        (`marlmerge.sim.observation`; an ego's is the layout of its scenario's
                        `ego.observation`)
@@ -90,7 +91,7 @@ def write_policy(
 
 ALGORITHMS: dict[str, tuple[str, ...]] = {
     "ego": EGO_ALGORITHMS,
-    "highway": ("quadq-residual", "ppo-residual", "ppo-speed"),
+    "highway": ("quadq-residual", "ppo-residual", "ppo-speed", "quadq-pace", "ppo-pace"),
 }
 """The algorithms a policy file of each group may name (the ego's: what `marlmerge train` can
 train, `TrainConfig.algorithm`)."""
@@ -101,6 +102,8 @@ STATE_KEYS = {
     "quadq-residual": ("net", "hidden"),
     "ppo-residual": ("net", "hidden"),
     "ppo-speed": ("net", "hidden"),
+    "quadq-pace": ("net", "hidden"),
+    "ppo-pace": ("net", "hidden"),
 }
 """What `policy_state` must hold for each algorithm (its loader rebuilds the network from it)."""
 TOP_KEYS = {

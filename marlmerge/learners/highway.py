@@ -17,7 +17,7 @@ from marlmerge.learners.ppo import greedy_offset, make_actor_net
 from marlmerge.learners.quadq import QuadraticQNet
 from marlmerge.policies.envelope import make_envelope
 from marlmerge.policies.scripted import ScriptedHighwayPolicy
-from marlmerge.sim.observation import HIGHWAY_FEATURES
+from marlmerge.sim.observation import HIGHWAY_FEATURES, HIGHWAY_SCALE, feature_index
 
 HighwayPolicy = Callable[[Tensor], Tensor]
 """observation [..., K, 12] -> acceleration [..., K, 1] (m/s^2), greedy."""
@@ -25,11 +25,42 @@ HighwayPolicy = Callable[[Tensor], Tensor]
 
 OFFSET_BOUNDS_MPS2 = (-3.0, 3.0)
 """Range of the learned adjustment a highway agent adds to its own car-following acceleration."""
+BASES = ("idm", "pace")
+"""What a residual highway driver adds its adjustment to: a neutral IDM driver's acceleration,
+or the pacing driver's (`pacing_accel`)."""
+PACE_RANGE_M = 15.0
+"""A pacing driver within this distance of the ramp vehicle's projection onto its lane steers to
+stay beside it."""
+PACE_GAINS = (0.5, 1.0)
+"""(1/s^2, 1/s): the pacing driver's acceleration per m of the ramp vehicle ahead of it and per
+m/s it is faster."""
+COURTESY_SPEED_FACTOR = 0.7
+"""A ramp vehicle on the ramp slower than this x the limit is waiting for a gap: the pacing
+driver then drives as a neutral IDM driver and lets it find one."""
+_COL = {f.name: feature_index(HIGHWAY_FEATURES, f.name) for f in HIGHWAY_FEATURES}
+
+
+def pacing_accel(raw: np.ndarray, idm_mps2: np.ndarray) -> np.ndarray:
+    """The pacing driver's acceleration [..., K] m/s^2 from unscaled highway observations
+    [..., K, 12] and the neutral IDM driver's acceleration [..., K]: while the ramp vehicle is
+    on the ramp, keep beside it (within `PACE_RANGE_M` of its projection: `PACE_GAINS` on the
+    distance and the speed difference) and elsewhere close every gap (IDM + the top of the
+    adjustment, as the edge driver), unless it waits for a gap (slower than
+    `COURTESY_SPEED_FACTOR` x the limit): then IDM. Plausibility is the envelope's job."""
+    c = _COL
+    v, v_ramp, limit = raw[..., c["speed"]], raw[..., c["ego_speed"]], raw[..., c["speed_limit"]]
+    dx_m = raw[..., c["ego_dx"]]  # the ramp vehicle's position minus own
+    on_ramp = (raw[..., c["ego_present"]] > 0.5) & (raw[..., c["ego_in_lane"]] < 0.5)
+    beside = on_ramp & (np.abs(dx_m) < PACE_RANGE_M)
+    pace_mps2 = PACE_GAINS[0] * dx_m + PACE_GAINS[1] * (v_ramp - v)
+    accel = np.where(beside, pace_mps2, idm_mps2 + OFFSET_BOUNDS_MPS2[1])
+    return np.where(on_ramp & (v_ramp < COURTESY_SPEED_FACTOR * limit), idm_mps2, accel)
 
 
 class ResidualHighwayPolicy:
     """A learned highway driver: the acceleration of a neutral IDM driver acting on the same
-    observation (`ScriptedHighwayPolicy("neutral")`) plus a learned adjustment `offset(obs)`,
+    observation (`ScriptedHighwayPolicy("neutral")`; `base = "pace"`: of the pacing driver,
+    `pacing_accel`) plus a learned adjustment `offset(obs)`,
     clipped to `sim.highway_agent_accel_bounds_mps2` and, with `envelope = "safe"`, limited to
     a plausible driver's envelope (`marlmerge.policies.envelope`). [..., K, 12] -> [..., K, 1]
     m/s^2.
@@ -44,16 +75,25 @@ class ResidualHighwayPolicy:
         offset: Callable[[Tensor], Tensor | dict[str, Tensor]],
         scenario: ScenarioConfig,
         envelope: str = "none",
+        base: str = "idm",
     ) -> None:
+        if base not in BASES:
+            raise ValueError(f"unknown highway base {base!r} (one of {BASES})")
         self.offset = offset
         self.idm = ScriptedHighwayPolicy("neutral", scenario)
         self.low, self.high = scenario.sim.highway_agent_accel_bounds_mps2
         self.envelope = make_envelope(envelope, scenario)
+        self.pacing = base == "pace"
 
     def base(self, obs: Tensor) -> Tensor:
-        """The IDM part, [..., 1] m/s^2 (0 for masked-out, all-zero observations)."""
-        a = self.idm(obs.numpy())
-        return torch.as_tensor(np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=self.low))
+        """The IDM part (or the pacing driver's), [..., 1] m/s^2; masked-out, all-zero
+        observations get what IDM gives them (never applied)."""
+        x = obs.numpy()
+        a = np.nan_to_num(self.idm(x), nan=0.0, posinf=0.0, neginf=self.low)  # [..., 1]
+        if self.pacing:
+            paced = pacing_accel(x.astype(np.float64) * HIGHWAY_SCALE, a[..., 0])[..., None]
+            a = np.where(np.any(x != 0, axis=-1, keepdims=True), paced, a).astype(a.dtype)
+        return torch.as_tensor(a)
 
     @torch.no_grad()
     def __call__(self, obs: Tensor) -> Tensor | dict[str, Tensor]:
@@ -123,9 +163,18 @@ def make_driver(
     within `CoTrainConfig.highway_envelope`."""
     if action == "desired_speed":
         return DesiredSpeedHighwayPolicy(choice, scenario, envelope)
-    if action != "accel_offset":
-        raise ValueError(f"unknown highway action {action!r} ('accel_offset', 'desired_speed')")
-    return ResidualHighwayPolicy(choice, scenario, envelope)
+    if action not in FILE_KINDS:
+        raise ValueError(f"unknown highway action {action!r} (one of {tuple(FILE_KINDS)})")
+    return ResidualHighwayPolicy(choice, scenario, envelope, base_of(action))
+
+
+FILE_KINDS = {"accel_offset": "residual", "desired_speed": "speed", "pace_offset": "pace"}
+"""A highway policy file's algorithm is the learner's name, "-", the kind of its action."""
+
+
+def base_of(action: str) -> str:
+    """What a residual driver of `CoTrainConfig.highway_action` adds its adjustment to."""
+    return "pace" if action == "pace_offset" else "idm"
 
 
 def frozen_net(
@@ -182,7 +231,7 @@ def save_highway_policy(
     state = {"net": state, "hidden": cfg.hidden, "profile": cfg.profile}
     if getattr(cfg, "highway_envelope", "none") != "none":  # files without one: "none"
         state["envelope"] = cfg.highway_envelope
-    kind = "speed" if getattr(cfg, "highway_action", "") == "desired_speed" else "residual"
+    kind = FILE_KINDS[getattr(cfg, "highway_action", "accel_offset")]
     algorithm = f"{getattr(cfg, 'highway_algorithm', 'quadq')}-{kind}"
     write_policy(path, "highway", algorithm, bounds, state, to_dict(cfg), to_dict(scen))
 
@@ -203,19 +252,37 @@ def edge_driver(scenario: ScenarioConfig) -> ResidualHighwayPolicy:
     )
 
 
+PACE_DRIVER = "pace"
+"""The name, in place of a run folder, of the scripted pacing driver."""
+
+
+def pace_driver(scenario: ScenarioConfig) -> ResidualHighwayPolicy:
+    """The scripted pacing driver within the plausible envelope: it keeps beside the ramp vehicle
+    while that is on the ramp, so that the place it would merge into stays taken, closes every
+    other gap as the edge driver does, and lets a ramp vehicle that waits for a gap find one
+    (`pacing_accel`). No learning: the same on every machine (docs/cotraining.md)."""
+    return ResidualHighwayPolicy(
+        lambda obs: torch.zeros((*obs.shape[:-1], 1)), scenario, "safe", base="pace"
+    )
+
+
+SCRIPTED_DRIVERS = {EDGE_DRIVER: edge_driver, PACE_DRIVER: pace_driver}
+"""The scripted highway drivers a `--highway` / `+highway:` may name in place of a run."""
+
+
 def load_highway_policy(path: str | Path, scenario: ScenarioConfig | None = None) -> HighwayPolicy:
     """The greedy shared policy of a saved highway group (`highway_policy.pt` or its folder),
-    or, for `EDGE_DRIVER`, the edge driver on `scenario` (the one it drives in)."""
-    if str(path) == EDGE_DRIVER:
+    or, for a name of `SCRIPTED_DRIVERS`, that driver on `scenario` (the one it drives in)."""
+    if str(path) in SCRIPTED_DRIVERS:
         if scenario is None:
-            raise ValueError(f"highway policy {EDGE_DRIVER!r} needs the scenario it drives in")
-        return edge_driver(scenario)
+            raise ValueError(f"highway policy {str(path)!r} needs the scenario it drives in")
+        return SCRIPTED_DRIVERS[str(path)](scenario)
     saved = read_policy(path, "highway")
     scen = from_dict(ScenarioConfig, saved["scenario"])
     low, high = saved["action_bounds_mps2"]
     state = saved["policy_state"]
     algorithm, kind = saved["algorithm"].split("-")
-    action = "desired_speed" if kind == "speed" else "accel_offset"
+    action = {k: a for a, k in FILE_KINDS.items()}[kind]
     envelope = state.get("envelope", "none")
     with weights_of(path):
         return snapshot_policy(

@@ -66,6 +66,7 @@ from marlmerge.learners.highway import (
     OFFSET_BOUNDS_MPS2,
     HighwayPolicy,
     ResidualHighwayPolicy,
+    base_of,
     frozen_net,
     load_highway_policy,
     make_driver,
@@ -530,7 +531,10 @@ class CoTrainRun:
         if kind == "adversary":
             env.set_opponent_mix(1, 0.0)
             residual = ResidualHighwayPolicy(
-                lambda obs: hw.act(obs)["action"], self.scen, cfg.highway_envelope
+                lambda obs: hw.act(obs)["action"],
+                self.scen,
+                cfg.highway_envelope,
+                base_of(cfg.highway_action),
             )
             if isinstance(hw.learner, PPOHighwayLearner):
                 hw.exploring = True  # PPO learns from its own samples
