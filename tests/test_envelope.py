@@ -100,7 +100,7 @@ def test_a_policy_file_keeps_its_envelope(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("learner", ["quadq", "ppo-speed", "quadq-pace"])
+@pytest.mark.parametrize("learner", ["quadq", "ppo-speed", "quadq-pace", "ppo-pace"])
 def test_an_enveloped_adversary_trains_and_its_policy_file_keeps_the_envelope(tmp_path, learner):
     from test_cotrain import TINY
     from test_ppo import TINY as PPO_TINY
@@ -111,6 +111,7 @@ def test_an_enveloped_adversary_trains_and_its_policy_file_keeps_the_envelope(tm
         "quadq": TINY,
         "ppo-speed": {"highway_action": "desired_speed", **PPO_TINY},
         "quadq-pace": {"highway_action": "pace_offset", **TINY},
+        "ppo-pace": {"highway_action": "pace_offset", **PPO_TINY},
     }[learner]
     cfg = load_cotrain_config(
         "cotrain",
@@ -120,7 +121,7 @@ def test_an_enveloped_adversary_trains_and_its_policy_file_keeps_the_envelope(tm
     cotrain(cfg, tmp_path, progress=False)
     driver = load_highway_policy(tmp_path)
     assert driver.envelope is not None
-    assert getattr(driver, "pacing", False) == (learner == "quadq-pace")
+    assert getattr(driver, "pacing", False) == learner.endswith("-pace")
     # whatever the net learned: full braking 1 m behind a standing leader, at most b on a free road
     obs = torch.as_tensor(_obs([10.0, 25.0], [1.0, 150.0], [0.0, 0.0]), dtype=torch.float32)
     accel = driver(obs)
