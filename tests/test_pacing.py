@@ -67,7 +67,9 @@ def test_the_pacing_driver_in_evaluate_and_the_grid(capsys):
     envelope; no collision of its own against gap acceptance."""
     from marlmerge.cli import main
     from marlmerge.evaluation.grid import parse_condition
+    from marlmerge.learners.highway import SCRIPTED_DRIVERS, SCRIPTED_LABELS
 
+    assert SCRIPTED_LABELS.keys() == SCRIPTED_DRIVERS.keys()  # every scripted driver named
     cond = parse_condition("grid_moderate_mixed+highway:pace")
     assert cond.highway == (PACE_DRIVER,) and cond.label.endswith("+ pacing drivers")
     with pytest.raises(ValueError, match="'pace' needs the scenario"):

@@ -92,7 +92,7 @@ def parse_condition(spec: str) -> Condition:
     `highway_policy.pt`, or such files; `edge` or `pace`: a scripted driver,
     `marlmerge.learners.highway.SCRIPTED_DRIVERS`) or `[label=]PRESET+sensing:SENSING_PRESET` (the
     ego's sensor of that preset's `[sensing]` on the preset's roads)."""
-    from marlmerge.learners.highway import SCRIPTED_DRIVERS
+    from marlmerge.learners.highway import SCRIPTED_LABELS
 
     label, _, body = spec.rpartition("=")
     preset, plus, learned = body.partition("+")
@@ -108,9 +108,9 @@ def parse_condition(spec: str) -> Condition:
             f"unknown condition {spec!r} (use PRESET, [label=]PRESET+highway:GLOB or "
             "[label=]PRESET+sensing:PRESET)"
         )
-    if pattern in SCRIPTED_DRIVERS:
-        named = {"edge": "edge drivers", "pace": "pacing drivers"}[pattern]
-        return Condition(preset, label or f"{condition_label(scen)} + {named}", (pattern,))
+    if pattern in SCRIPTED_LABELS:
+        named = f"{condition_label(scen)} + {SCRIPTED_LABELS[pattern]}"
+        return Condition(preset, label or named, (pattern,))
     found = tuple(
         m for m in sorted(glob.glob(pattern)) if Path(m).is_dir() or m.endswith(".pt")
     ) or (pattern,)

@@ -165,16 +165,12 @@ def make_driver(
         return DesiredSpeedHighwayPolicy(choice, scenario, envelope)
     if action not in FILE_KINDS:
         raise ValueError(f"unknown highway action {action!r} (one of {tuple(FILE_KINDS)})")
-    return ResidualHighwayPolicy(choice, scenario, envelope, base_of(action))
+    base = "pace" if action == "pace_offset" else "idm"
+    return ResidualHighwayPolicy(choice, scenario, envelope, base)
 
 
 FILE_KINDS = {"accel_offset": "residual", "desired_speed": "speed", "pace_offset": "pace"}
 """A highway policy file's algorithm is the learner's name, "-", the kind of its action."""
-
-
-def base_of(action: str) -> str:
-    """What a residual driver of `CoTrainConfig.highway_action` adds its adjustment to."""
-    return "pace" if action == "pace_offset" else "idm"
 
 
 def frozen_net(
@@ -268,6 +264,8 @@ def pace_driver(scenario: ScenarioConfig) -> ResidualHighwayPolicy:
 
 SCRIPTED_DRIVERS = {EDGE_DRIVER: edge_driver, PACE_DRIVER: pace_driver}
 """The scripted highway drivers a `--highway` / `+highway:` may name in place of a run."""
+SCRIPTED_LABELS = {EDGE_DRIVER: "edge drivers", PACE_DRIVER: "pacing drivers"}
+"""How a grid condition with a scripted driver of `SCRIPTED_DRIVERS` names it."""
 
 
 def load_highway_policy(path: str | Path, scenario: ScenarioConfig | None = None) -> HighwayPolicy:

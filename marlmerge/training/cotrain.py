@@ -66,7 +66,6 @@ from marlmerge.learners.highway import (
     OFFSET_BOUNDS_MPS2,
     HighwayPolicy,
     ResidualHighwayPolicy,
-    base_of,
     frozen_net,
     load_highway_policy,
     make_driver,
@@ -530,12 +529,6 @@ class CoTrainRun:
         opponents: list[HighwayPolicy] = []
         if kind == "adversary":
             env.set_opponent_mix(1, 0.0)
-            residual = ResidualHighwayPolicy(
-                lambda obs: hw.act(obs)["action"],
-                self.scen,
-                cfg.highway_envelope,
-                base_of(cfg.highway_action),
-            )
             if isinstance(hw.learner, PPOHighwayLearner):
                 hw.exploring = True  # PPO learns from its own samples
                 rows = functools.partial(
@@ -544,6 +537,12 @@ class CoTrainRun:
                 residual = make_driver(cfg.highway_action, hw.act, self.scen, cfg.highway_envelope)
             else:
                 explore(hw, cfg.highway_sigma_start, cfg.highway_sigma_end, length // 2)
+                residual = make_driver(
+                    cfg.highway_action,
+                    lambda obs: hw.act(obs)["action"],
+                    self.scen,
+                    cfg.highway_envelope,
+                )
                 rows = functools.partial(highway_rows, residual=residual)
             feeds = [(hw, rows)]
             opponents = [residual]
