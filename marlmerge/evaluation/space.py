@@ -74,6 +74,10 @@ HELDOUT8_SEED = 20261207
 """The seed the eighth held-out set (`envs/heldout8_*`) was drawn with: committed before
 anyone ran a policy on it, for the round after the seventh set's check (the drivers' new
 default and the recipes tuned on it)."""
+HELDOUT9_SEED = 20261214
+"""The seed the ninth held-out set (`envs/heldout9_*`) was drawn with: committed before
+anyone ran a policy on it, for the round that trains the hardened recipe on the stress space's
+roads (`trainers/hardened_roads.toml`)."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -81,6 +85,7 @@ HELDOUT_SETS = {
     "heldout6": HELDOUT6_SEED,
     "heldout7": HELDOUT7_SEED,
     "heldout8": HELDOUT8_SEED,
+    "heldout9": HELDOUT9_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
@@ -138,6 +143,7 @@ def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None =
         "heldout6": "sixth",
         "heldout7": "seventh",
         "heldout8": "eighth",
+        "heldout9": "ninth",
     }
     ordinal = ordinals.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
