@@ -78,6 +78,11 @@ HELDOUT9_SEED = 20261214
 """The seed the ninth held-out set (`envs/heldout9_*`) was drawn with: committed before
 anyone ran a policy on it, for the round that trains the hardened recipe on the stress space's
 roads (`trainers/hardened_roads.toml`)."""
+HELDOUT10_SEED = 20261215
+"""The seed the tenth held-out set (`envs/heldout10_*`) was drawn with: committed before
+anyone ran a policy on it, for the round that makes the hardened ego's collisions cost more
+than waiting (`trainers/hardened_careful.toml`), after the ninth set had judged
+`hardened_roads`."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -86,6 +91,7 @@ HELDOUT_SETS = {
     "heldout7": HELDOUT7_SEED,
     "heldout8": HELDOUT8_SEED,
     "heldout9": HELDOUT9_SEED,
+    "heldout10": HELDOUT10_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
@@ -144,6 +150,7 @@ def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None =
         "heldout7": "seventh",
         "heldout8": "eighth",
         "heldout9": "ninth",
+        "heldout10": "tenth",
     }
     ordinal = ordinals.get(prefix, prefix)
     base, paths = ScenarioConfig(), []
