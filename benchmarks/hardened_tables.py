@@ -3,13 +3,14 @@
     python benchmarks/hardened_tables.py runs/hardened_grid/episodes.csv \
         [runs/hardened_seeded_grid/episodes.csv ...]
 
-Prints, in Markdown, one table per condition set (the grid's 12 cells, the held-out sets
-`heldout`, `heldout2`, `heldout3`, `heldout4`) and one over all of them: per policy, success,
+Prints, in Markdown, one table per condition set (the grid's 12 cells and each held-out set
+present: `heldout`, `heldout2`, ..., `heldout10`) and one over all of them: per policy, success,
 collisions with their Wilson 95 % interval, the worst condition pooled over seeds, the worst
 seed in any condition, time to merge and max jerk. Then the targets of issue "hardening": the
 hardened ego unshielded (<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no
 seed below 98 % in any condition, merge time <= gap acceptance's, max jerk <= the paper
-recipe's) on every set, and behind the shield 0 collisions in the held-out episodes.
+recipe's; not judged where the grids have no `paper` policy on a set) on every set, and behind
+the shield (`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes.
 """
 
 from __future__ import annotations
@@ -22,13 +23,14 @@ from robustness_tables import load, merge_time, pct, worst
 
 from marlmerge.evaluation.metrics import wilson_interval
 
-SETS = ("grid", "heldout", "heldout2", "heldout3", "heldout4")
-NAMES = {"grid": "the grid (12 cells)", "heldout": "held-out 1", "heldout2": "held-out 2",
-         "heldout3": "held-out 3", "heldout4": "held-out 4 (drawn before this round)"}  # fmt: skip
+SETS = ("grid", "heldout", *(f"heldout{k}" for k in range(2, 11)))
+NAMES = {"grid": "the grid (12 cells)", "heldout": "held-out 1"} | {
+    f"heldout{k}": f"held-out {k}" for k in range(2, 11)
+}
 
 
 def set_of(condition: str) -> str:
-    m = re.match(r"(heldout\d?)[ _]", condition)
+    m = re.match(r"(heldout\d*)[ _]", condition)
     return m.group(1) if m else "grid"
 
 
@@ -69,10 +71,12 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
            "no seed < 98 % in a condition | merge time ≤ gap's | max jerk ≤ paper's |",
            "|---|---|---|---|---|---|---|"]  # fmt: skip
     for name in SETS:
-        d, gap, paper = (restrict(g[p], name) for p in (policy, "gap", "paper"))
+        d, gap = restrict(g[policy], name), restrict(g["gap"], name)
         if not len(d["success"]):
             continue
-        w = worst(d)
+        w, jerk = worst(d), np.nanmean(d["max_abs_jerk_mps3"])
+        paper = restrict(g["paper"], name)["max_abs_jerk_mps3"] if "paper" in g else []
+        paper_jerk = np.nanmean(paper) if len(paper) else None
         checks = [
             (d["collision"].mean() <= 0.001, pct(d["collision"])),
             (d["success"].mean() >= 0.995, pct(d["success"])),
@@ -80,31 +84,38 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
             (w.run_success >= 0.98, f"{100 * w.run_success:.1f} %"),
             (merge_time(d) <= merge_time(gap), f"{merge_time(d):.1f} vs {merge_time(gap):.1f} s"),
             (
-                np.nanmean(d["max_abs_jerk_mps3"]) <= np.nanmean(paper["max_abs_jerk_mps3"]),
-                f"{np.nanmean(d['max_abs_jerk_mps3']):.1f} vs "
-                f"{np.nanmean(paper['max_abs_jerk_mps3']):.1f}",
+                None if paper_jerk is None else jerk <= paper_jerk,
+                f"{jerk:.1f} vs {'-' if paper_jerk is None else f'{paper_jerk:.1f}'}",
             ),
         ]
-        cells = " | ".join(f"{'met' if ok else 'missed'} ({v})" for ok, v in checks)
+        verdict = {True: "met", False: "missed", None: "not judged"}
+        cells = " | ".join(f"{verdict[ok]} ({v})" for ok, v in checks)
         out.append(f"| {NAMES[name]} | {cells} |")
-    shield = f"{policy}@shield"
-    if shield in g:
+    for shield in (f"{policy}@shield", f"{policy}@shield-left"):
+        if shield not in g:
+            continue
         held = [restrict(g[shield], s) for s in SETS[1:]]
         k = int(sum(h["collision"].sum() for h in held))
         n = sum(len(h["collision"]) for h in held)
-        out += ["", f"Behind the shield, the held-out sets: {k} collisions in {n:,} episodes "
-                f"(target: 0 in ≥ 10,000)."]  # fmt: skip
+        out += ["", f"Behind `@{shield.split('@')[1]}`, the held-out sets: {k} collisions in "
+                f"{n:,} episodes (target: 0 in ≥ 10,000)."]  # fmt: skip
     return out
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("episodes", nargs="+", help="grids' episodes.csv (their policies are merged)")
+    p.add_argument(
+        "episodes",
+        nargs="+",
+        help="grids' episodes.csv (their policies merged, a policy's episodes pooled)",
+    )
     p.add_argument("--policy", default="hardened", help="the policy the targets are for")
     args = p.parse_args()
     g: dict[str, dict[str, np.ndarray]] = {}
-    for path in args.episodes:
-        g.update(load(path))
+    for path in args.episodes:  # a policy in several grids: their episodes together
+        for policy, d in load(path).items():
+            old = g.get(policy)
+            g[policy] = d if old is None else {k: np.concatenate([old[k], d[k]]) for k in d}
     for name in (None, *SETS):
         rows = table(g, name)
         if len(rows) > 2:

@@ -259,3 +259,26 @@ def test_drawn_profiles_are_what_generator_choice_draws(mix):
             expected = numpy.choice(3, size=n, p=p).astype(np.float64)
             assert np.array_equal(streams._profiles(cfg, ours, n), expected)
         assert ours.bit_generator.state == numpy.bit_generator.state
+
+
+def test_the_hardened_roads_preset_is_hardened_mix_with_the_stress_spaces_roads():
+    # the road keys are drawn last: each world's traffic is hardened_mix's, on its own road
+    from marlmerge.evaluation.space import SPACE
+
+    mix, roads = resolve_config("hardened_mix"), resolve_config("hardened_roads")
+    assert (
+        roads.replace(**{"sample.ramp_length_m": None, "sample.merge_zone_m": None}).replace(
+            name="hardened_mix"
+        )
+        == mix
+    )
+    bounds = {d.key: (d.low, d.high) for d in SPACE}
+    plain, drawn = TrafficCore(mix, 16, 7), TrafficCore(roads, 16, 7)
+    for b in range(16):
+        p, w = plain.world_scenario(b), drawn.world_scenario(b)
+        assert (p.traffic, p.driver, p.ego) == (w.traffic, w.driver, w.ego)
+        for key in ("ramp_length_m", "merge_zone_m"):
+            lo, hi = bounds[key]
+            assert lo <= getattr(w.road, key) <= hi
+            assert getattr(p.road, key) == getattr(mix.road, key)
+    assert len({drawn.world_scenario(b).road.ramp_length_m for b in range(16)}) == 16

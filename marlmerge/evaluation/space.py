@@ -80,9 +80,9 @@ anyone ran a policy on it, for the round that trains the hardened recipe on the 
 roads (`trainers/hardened_roads.toml`)."""
 HELDOUT10_SEED = 20261215
 """The seed the tenth held-out set (`envs/heldout10_*`) was drawn with: committed before
-anyone ran a policy on it, for the round that makes the hardened ego's collisions cost more
-than waiting (`trainers/hardened_careful.toml`), after the ninth set had judged
-`hardened_roads`."""
+anyone ran a policy on it, after the ninth set had judged `hardened_roads`. Costlier
+collisions, the variant it was drawn for, failed on its validation roads first
+(docs/stress.md), so the set is still unseen."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
