@@ -81,8 +81,8 @@ roads (`trainers/hardened_roads.toml`)."""
 HELDOUT10_SEED = 20261215
 """The seed the tenth held-out set (`envs/heldout10_*`) was drawn with: committed before
 anyone ran a policy on it, after the ninth set had judged `hardened_roads`. Costlier
-collisions, the variant it was drawn for, failed on its validation roads first
-(docs/stress.md), so the set is still unseen."""
+collisions, the variant it was drawn for, failed on its validation roads first; it judged the
+hardened recipe trained behind the shield instead (docs/stress.md)."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
