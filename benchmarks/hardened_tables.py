@@ -4,7 +4,7 @@
         [runs/hardened_seeded_grid/episodes.csv ...]
 
 Prints, in Markdown, one table per condition set (the grid's 12 cells and each held-out set
-present: `heldout`, `heldout2`, ..., `heldout10`) and one over all of them: per policy, success,
+the grids ran: `heldout`, `heldout2`, ...) and one over all of them: per policy, success,
 collisions with their Wilson 95 % interval, the worst condition pooled over seeds, the worst
 seed in any condition, time to merge and max jerk. Then the targets of issue "hardening": the
 hardened ego unshielded (<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no
@@ -23,15 +23,24 @@ from robustness_tables import load, merge_time, pct, worst
 
 from marlmerge.evaluation.metrics import wilson_interval
 
-SETS = ("grid", "heldout", *(f"heldout{k}" for k in range(2, 11)))
-NAMES = {"grid": "the grid (12 cells)", "heldout": "held-out 1"} | {
-    f"heldout{k}": f"held-out {k}" for k in range(2, 11)
-}
-
 
 def set_of(condition: str) -> str:
     m = re.match(r"(heldout\d*)[ _]", condition)
     return m.group(1) if m else "grid"
+
+
+def number(name: str) -> int:
+    """A set's place: the grid 0, `heldout` 1, `heldoutK` K."""
+    return 0 if name == "grid" else int(name.removeprefix("heldout") or 1)
+
+
+def sets_in(g: dict[str, dict[str, np.ndarray]]) -> list[str]:
+    """The condition sets the grids ran, the grid first, then the held-out sets in order."""
+    return sorted({set_of(c) for d in g.values() for c in d["condition"]}, key=number)
+
+
+def title(name: str) -> str:
+    return "the grid (12 cells)" if name == "grid" else f"held-out {number(name)}"
 
 
 def restrict(d: dict[str, np.ndarray], name: str | None) -> dict[str, np.ndarray]:
@@ -70,7 +79,8 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
     out = ["| set | collisions ≤ 0.1 % | success ≥ 99.5 % | no condition < 99 % | "
            "no seed < 98 % in a condition | merge time ≤ gap's | max jerk ≤ paper's |",
            "|---|---|---|---|---|---|---|"]  # fmt: skip
-    for name in SETS:
+    sets = sets_in(g)
+    for name in sets:
         d, gap = restrict(g[policy], name), restrict(g["gap"], name)
         if not len(d["success"]):
             continue
@@ -90,11 +100,11 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
         ]
         verdict = {True: "met", False: "missed", None: "not judged"}
         cells = " | ".join(f"{verdict[ok]} ({v})" for ok, v in checks)
-        out.append(f"| {NAMES[name]} | {cells} |")
+        out.append(f"| {title(name)} | {cells} |")
     for shield in (f"{policy}@shield", f"{policy}@shield-left"):
         if shield not in g:
             continue
-        held = [restrict(g[shield], s) for s in SETS[1:]]
+        held = [restrict(g[shield], s) for s in sets if s != "grid"]
         k = int(sum(h["collision"].sum() for h in held))
         n = sum(len(h["collision"]) for h in held)
         out += ["", f"Behind `@{shield.split('@')[1]}`, the held-out sets: {k} collisions in "
@@ -116,10 +126,10 @@ def main() -> None:
         for policy, d in load(path).items():
             old = g.get(policy)
             g[policy] = d if old is None else {k: np.concatenate([old[k], d[k]]) for k in d}
-    for name in (None, *SETS):
+    for name in (None, *sets_in(g)):
         rows = table(g, name)
         if len(rows) > 2:
-            print(f"\n### {'all sets' if name is None else NAMES[name]}\n")
+            print(f"\n### {'all sets' if name is None else title(name)}\n")
             print("\n".join(rows))
     for policy in (args.policy, *(q for q in g if q != args.policy and q.startswith(args.policy)
                                   and "@" not in q)):  # fmt: skip
