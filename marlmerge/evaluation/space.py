@@ -83,6 +83,11 @@ HELDOUT10_SEED = 20261215
 anyone ran a policy on it, after the ninth set had judged `hardened_roads`. Costlier
 collisions, the variant it was drawn for, failed on its validation roads first; it judged the
 hardened recipe trained behind the shield instead (docs/stress.md)."""
+HELDOUT11_SEED = 20261216
+"""The seed the eleventh held-out set (`envs/heldout11_*`) was drawn with: committed before
+anyone ran a policy on it, for the round that trains the hardened recipe bare with the shield's
+verdicts as a cost (`TrainConfig.shield_penalty`), after the tenth set had judged the recipe
+trained behind the shield."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -92,6 +97,7 @@ HELDOUT_SETS = {
     "heldout8": HELDOUT8_SEED,
     "heldout9": HELDOUT9_SEED,
     "heldout10": HELDOUT10_SEED,
+    "heldout11": HELDOUT11_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
@@ -138,21 +144,26 @@ def write_heldout3(folder: Path, n: int = 12, seed: int = HELDOUT3_SEED) -> list
     return write_heldout_set(folder, "heldout3", n, seed)
 
 
+ORDINALS = (
+    "first", "second", "third", "fourth", "fifth", "sixth", "seventh", "eighth", "ninth", "tenth",
+    "eleventh", "twelfth", "thirteenth", "fourteenth", "fifteenth", "sixteenth", "seventeenth",
+    "eighteenth", "nineteenth", "twentieth",
+)  # fmt: skip
+
+
+def ordinal_of(prefix: str) -> str:
+    """"heldout11" -> "eleventh" (the word its presets' comments use); other names unchanged."""
+    number = prefix.removeprefix("heldout")
+    if number.isdigit() and 1 <= int(number) <= len(ORDINALS):
+        return ORDINALS[int(number) - 1]
+    return prefix
+
+
 def write_heldout_set(folder: Path, prefix: str, n: int = 12, seed: int | None = None):
     """Write a held-out set drawn from `SPACE` (`HELDOUT_SETS`), `PREFIX_01.toml` ... into
     `folder`; `seed` defaults to the set's own."""
     seed = HELDOUT_SETS[prefix] if seed is None else seed
-    ordinals = {
-        "heldout3": "third",
-        "heldout4": "fourth",
-        "heldout5": "fifth",
-        "heldout6": "sixth",
-        "heldout7": "seventh",
-        "heldout8": "eighth",
-        "heldout9": "ninth",
-        "heldout10": "tenth",
-    }
-    ordinal = ordinals.get(prefix, prefix)
+    ordinal = ordinal_of(prefix)
     base, paths = ScenarioConfig(), []
     for i, point in enumerate(heldout_points(n, seed), start=1):
         name = f"{prefix}_{i:02d}"
