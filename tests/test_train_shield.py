@@ -1,6 +1,7 @@
 """Gap acceptance's shield in the training loop (`TrainConfig.shield`): the vehicles drive what it
 lets through, the replay stores that, the run is evaluated behind it, and what cannot take it is
-refused before any work."""
+refused before any work. A judging shield (`shield_penalty`) lets the ego drive its own command,
+prices the overrule in the replay's reward, and its run is evaluated bare."""
 
 import json
 
@@ -12,9 +13,10 @@ from test_train import TINY
 
 from marlmerge.cli import main
 from marlmerge.config.training import TrainConfig
-from marlmerge.training.loop import GroupPolicy
+from marlmerge.evaluation.registry import bare_shield_note
+from marlmerge.training.loop import GroupPolicy, transition_rows
 from marlmerge.training.ramp import RampGroupPolicy
-from marlmerge.training.shield import make_train_shield
+from marlmerge.training.shield import SHIELD_COST, make_train_shield
 from marlmerge.training.train import train
 from marlmerge.views.ramp_flow_torchrl import RampFlowTorchEnv
 from marlmerge.views.torchrl_env import BatchedMergeEnv
@@ -37,7 +39,7 @@ def test_the_ego_drives_what_the_shield_lets_through():
     for _ in range(80):
         td = policy(td)
         asked = np.full((16, 1), THROTTLE)
-        expected = shield(td["observation"].numpy(), asked)
+        expected = shield.shield(td["observation"].numpy(), asked)
         assert np.array_equal(td["action"].numpy(), expected)  # what the env steps with
         overruled += int((td["action"] != THROTTLE).sum())
         td = env.step(td)["next"]
@@ -53,7 +55,7 @@ def test_every_merging_vehicle_drives_what_the_shield_lets_through():
         td = policy(td)
         obs, mask = td["ramp", "observation"], td["ramp", "mask"]
         flat = obs.reshape(-1, obs.shape[-1]).numpy()
-        expected = shield(flat, np.full((flat.shape[0], 1), THROTTLE)).reshape(4, -1, 1)
+        expected = shield.shield(flat, np.full((flat.shape[0], 1), THROTTLE)).reshape(4, -1, 1)
         assert np.array_equal(td["ramp", "action"].numpy(), expected)
         overruled += int(((td["ramp", "action"] != THROTTLE).squeeze(-1) & mask).sum())
         td = env.step(td)["next"]
@@ -65,6 +67,8 @@ def test_every_merging_vehicle_drives_what_the_shield_lets_through():
     [
         ({"shield": "always"}, "shield must be one of"),
         ({"shield": "shield", "algorithm": "dqn"}, "dqn's discrete levels"),
+        ({"shield_penalty": 1.0}, r"shield_penalty = 1.0 needs a shield"),
+        ({"shield": "shield", "shield_penalty": -1.0}, "shield_penalty"),
     ],
 )
 def test_bad_shield_settings_are_named(values, message):
@@ -77,6 +81,10 @@ def test_bad_shield_settings_are_named(values, message):
     [
         ({"shield": "shield-left"}, "reads the left-lane features; ego.observation = 'paper'"),
         ({"shield": "shield", "scenario": "chosen_join"}, "leaves the join to the policy"),
+        (
+            {"shield": "shield", "shield_penalty": 1.0, "scenario": "ramp_flow"},
+            "shield_penalty = 1.0 on scenario 'ramp_flow': a judging shield",
+        ),
     ],
 )
 def test_a_scenario_the_shield_cannot_judge_is_refused_before_any_work(tmp_path, values, message):
@@ -106,3 +114,47 @@ def test_a_shielded_ramp_flow_run_is_evaluated_behind_its_shield(tmp_path, capsy
         assert f"{note}quadq@shield:{run}" in capsys.readouterr().err
     assert main([*rampflow, f"quadq@shield:{run}"]) == 0
     assert "trained behind the shield" not in capsys.readouterr().err
+
+
+PENALTY = 0.5  # reward per m/s^2 between the command and the shield's
+
+
+def test_a_judging_shield_lets_the_ego_drive_its_command_and_prices_the_overrule():
+    env = BatchedMergeEnv("grid_dense_adversarial", num_worlds=16, seed=0)
+    shield = make_train_shield(TrainConfig(shield="shield", shield_penalty=PENALTY), env.cfg)
+    assert shield is not None
+    rollout = env.rollout(80, GroupPolicy(FloorIt(), shield), break_when_any_done=False)  # type: ignore[arg-type]
+    assert torch.all(rollout["action"] == THROTTLE)  # the env stepped with the learner's command
+    obs = rollout["observation"].reshape(-1, rollout["observation"].shape[-1]).numpy()
+    overruled = shield.shield(obs, np.full((obs.shape[0], 1), THROTTLE))
+    cost = rollout[SHIELD_COST].reshape(-1, 1).numpy()
+    assert np.allclose(cost, PENALTY * np.abs(overruled - THROTTLE), atol=1e-6)
+    assert (cost > 0).any() and (cost == 0).any()
+    rows = transition_rows(rollout)  # [B * T, obs | action | reward | terminated | next_obs]
+    reward = rows[:, obs.shape[-1] + 1].numpy()
+    env_reward = rollout["next", "reward"].reshape(-1).numpy()
+    assert np.array_equal(reward, env_reward - cost[:, 0])
+
+
+def test_a_run_with_a_judging_shield_is_evaluated_bare(tmp_path, capsys):
+    values = {**TINY, "scenario": "grid_dense_adversarial", "shield": "shield"}
+    values["shield_penalty"] = PENALTY
+    quote = {k: f'"{v}"' if isinstance(v, str) else v for k, v in values.items()}
+    run = tmp_path / "run"
+    assert (
+        main(
+            [
+                "train",
+                "--out",
+                str(run),
+                "--no-progress",
+                *[f"--set={k}={v}" for k, v in quote.items()],
+            ]
+        )
+        == 0
+    )
+    assert "drive it the same way" not in capsys.readouterr().out
+    evaluation = json.loads((run / "evaluation.json").read_text())
+    assert "shield_judged" not in evaluation  # driven bare, as it is meant to drive
+    assert json.loads((run / "config.json").read_text())["shield_penalty"] == PENALTY
+    assert bare_shield_note(str(run)) is None

@@ -212,6 +212,13 @@ class TrainConfig(RunConfig):
     `@shield` and `@shield-left`), the replay keeps the commands driven, and `evaluation.json`
     measures the policy behind that shield: a run meant to be deployed as `quadq@shield:RUN`.
     quadq and td3 only ("none": no shield)."""
+    shield_penalty: float = num(0.0, 0.0, 1000.0)
+    """0: the `shield` drives, as above. > 0: the shield only judges. The ego drives its own
+    command, and the reward the replay keeps for each env step loses `shield_penalty` x |command
+    - what the shield would let through| (per m/s^2; the logged rewards stay the env's), so the
+    learner pays for the commands gap acceptance would overrule and sees where they lead;
+    `evaluation.json` measures the policy bare, as it is meant to drive. Needs a `shield`; any
+    algorithm."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -230,9 +237,14 @@ class TrainConfig(RunConfig):
                     f"shield must be one of {TRAIN_SHIELDS}, got {self.shield!r}",
                 ),
                 (
-                    self.shield == "none" or self.algorithm != "dqn",
+                    self.shield_penalty == 0.0 or self.shield != "none",
+                    f"shield_penalty = {self.shield_penalty} needs a shield to judge the "
+                    "commands: set shield = 'shield' or 'shield-left'",
+                ),
+                (
+                    self.shield == "none" or self.shield_penalty > 0.0 or self.algorithm != "dqn",
                     f"shield = {self.shield!r} replaces the commands driven, which dqn's discrete "
-                    "levels cannot store: use algorithm = 'quadq' or 'td3'",
+                    "levels cannot store: use algorithm = 'quadq' or 'td3' (or shield_penalty > 0)",
                 ),
                 (
                     re.fullmatch(DEVICE_PATTERN, self.device) is not None,

@@ -152,7 +152,7 @@ ORDINALS = (
 
 
 def ordinal_of(prefix: str) -> str:
-    """"heldout11" -> "eleventh" (the word its presets' comments use); other names unchanged."""
+    """The word for a held-out set's place (heldout11: eleventh); other names unchanged."""
     number = prefix.removeprefix("heldout")
     if number.isdigit() and 1 <= int(number) <= len(ORDINALS):
         return ORDINALS[int(number) - 1]

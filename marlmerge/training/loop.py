@@ -33,8 +33,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from marlmerge.io import files
 from marlmerge.learners.base import Learner
-from marlmerge.policies.gap_acceptance import GapShield
-from marlmerge.training.shield import shielded
+from marlmerge.training.shield import SHIELD_COST, TrainShield, shielded
 
 RowsFn = Callable[[TensorDictBase], Tensor]
 """Collector batch [B, T] -> packed transitions [n, obs | action | reward | terminated | next]."""
@@ -166,7 +165,7 @@ class GroupPolicy:
     what else it acts with, e.g. DQN's `action_index`), through `shield` if the run has one
     (`marlmerge.training.shield`)."""
 
-    def __init__(self, group: LearningGroup, shield: GapShield | None = None) -> None:
+    def __init__(self, group: LearningGroup, shield: TrainShield | None = None) -> None:
         self.group, self.shield = group, shield
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
@@ -241,14 +240,18 @@ def run_loop(
 def transition_rows(batch: TensorDictBase, action: Tensor | None = None) -> Tensor:
     """The packed transitions [B * T, obs | action | reward | terminated | next_obs] of a
     single-agent batch [B, T]; `action` [B * T, 1] replaces the stored action (e.g. the
-    learner's `replay_action`)."""
+    learner's `replay_action`). A judging shield's `shield_cost` is taken off the reward
+    (`marlmerge.training.shield`)."""
     flat = batch.reshape(-1)
     nxt = flat.get("next")
+    reward = nxt.get("reward")
+    if SHIELD_COST in flat.keys():
+        reward = reward - flat.get(SHIELD_COST)
     return torch.cat(
         [
             flat.get("observation"),
             flat.get("action") if action is None else action,
-            nxt.get("reward"),
+            reward,
             nxt.get("terminated").float(),
             nxt.get("observation"),
         ],

@@ -16,9 +16,8 @@ from tensordict import TensorDict, TensorDictBase
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import TrainConfig
 from marlmerge.evaluation.ramp_flow import check_ramp_scenario
-from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.training.loop import LearningGroup
-from marlmerge.training.shield import shielded
+from marlmerge.training.shield import TrainShield, shielded
 from marlmerge.views.ramp_flow_torchrl import GROUP, RampFlowTorchEnv
 
 RAMP_AGENTS = 8
@@ -45,7 +44,7 @@ class RampGroupPolicy:
     (free columns too; the env ignores them), one shared policy, through `shield` if the run
     has one."""
 
-    def __init__(self, group: LearningGroup, shield: GapShield | None = None) -> None:
+    def __init__(self, group: LearningGroup, shield: TrainShield | None = None) -> None:
         self.group, self.shield = group, shield
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:

@@ -41,7 +41,6 @@ from marlmerge.io import files
 from marlmerge.learners.common import resolve_device, sample_uniform
 from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 from marlmerge.learners.quadq_learner import QuadQLearner
-from marlmerge.policies.gap_acceptance import GapShield
 from marlmerge.training.checkpoint import open_checkpoint, saved_config
 from marlmerge.training.levels import LevelReplay, SeedLevels
 from marlmerge.training.logs import progress_bar
@@ -52,7 +51,7 @@ from marlmerge.training.loop import (
     save_checkpoint,
     set_torch_threads,
 )
-from marlmerge.training.shield import make_train_shield, shielded
+from marlmerge.training.shield import TrainShield, make_train_shield, shielded
 from marlmerge.training.train import (
     CHECKPOINT_VERSION,
     RunEnd,
@@ -133,7 +132,7 @@ class SeedsPolicy:
     the run's `shield`, row by row, as a single run's)."""
 
     def __init__(
-        self, groups: list[LearningGroup], worlds_per_seed: int, shield: GapShield | None = None
+        self, groups: list[LearningGroup], worlds_per_seed: int, shield: TrainShield | None = None
     ) -> None:
         self.groups, self.b, self.shield = groups, worlds_per_seed, shield
 

@@ -72,7 +72,7 @@ from marlmerge.training.ramp import (
     ramp_rows,
 )
 from marlmerge.training.select import Selection
-from marlmerge.training.shield import behind_shield, make_train_shield
+from marlmerge.training.shield import behind_shield, deployed_shield, make_train_shield
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 CHECKPOINT_VERSION = 3
@@ -464,7 +464,7 @@ def write_timing(out: Path, result: TrainResult, k: int) -> None:
 
 
 def evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] | None:
-    """The greedy policy (behind the run's shield, if it has one) on the held-out roads
+    """The greedy policy (behind the run's driving shield, if it has one) on the held-out roads
     (`evaluation.json`), and the run's figures. Ramp flow: the saved policy drives every ramp
     vehicle (`run_ramp_flow`) until about `eval_episodes` have merged."""
     evaluation = None
@@ -481,7 +481,7 @@ def evaluate_and_plot(cfg: TrainConfig, out: Path, greedy) -> dict[str, float] |
         from marlmerge.evaluation.rollout import evaluate_policy
 
         evaluation = evaluate_policy(
-            behind_shield(greedy, make_train_shield(cfg, scen)),
+            behind_shield(greedy, deployed_shield(cfg, scen)),
             scen,
             cfg.eval_episodes,
             cfg.eval_seed,
