@@ -108,8 +108,14 @@ SMALL = {**TINY, "total_sim_steps": 3_200, "eval_episodes": 6, "eval_worlds": 3,
         {"update_path": "fast", "select.every_sim_steps": 1_600, "select.episodes": 6},
         {"algorithm": "dqn", "total_sim_steps": 1_600, "learning_starts": 128},
         {"update_path": "fast", "shield": "shield", "scenario": "grid_dense_adversarial"},
+        {
+            "update_path": "fast",
+            "shield": "shield",
+            "shield_penalty": 1.0,
+            "scenario": "grid_dense_adversarial",
+        },
     ],
-    ids=["quadq-fast", "quadq-compiled", "quadq-select", "dqn", "quadq-shield"],
+    ids=["quadq-fast", "quadq-compiled", "quadq-select", "dqn", "quadq-shield", "quadq-judging"],
 )
 def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
     from marlmerge.config import from_dict, to_dict
@@ -122,7 +128,7 @@ def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
     if cfg.update_path != "compiled":  # compiled, one seed is one more compilation (~1 min cold)
         train_seeds(cfg, [3], tmp_path / "one", progress=False)
         _same_run(tmp_path / "one" / "seed_3", tmp_path / "single")
-    if cfg.shield != "none":  # evaluated behind its shield, which says how often it stepped in
+    if cfg.shield != "none" and cfg.shield_penalty == 0.0:  # evaluated behind its shield
         evaluation = json.loads((tmp_path / "single" / "evaluation.json").read_text())
         assert evaluation["shield_judged"] > 0 and evaluation["shield_changed_share"] is not None
     two = _read(tmp_path / "two" / "seed_0" / "egos.csv")
