@@ -410,3 +410,53 @@ def test_exploration_schedule_bounds_and_determinism():
     mid = torch.zeros(20000, 1)
     noisy = exp(mid, 10_000, _gen(24))
     assert abs(noisy.std().item() - 0.1) < 0.01
+
+
+def _teacher(obs: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
+    """A teacher that overrules the command (to -2 m/s^2) where the first feature is negative."""
+    return torch.where(obs[:, :1] < 0.0, torch.full_like(command, -2.0), command)
+
+
+def test_the_imitation_term_matches_autograd_of_its_loss_and_adam():
+    k, weight = 4, 0.7
+    g = _gen(21)
+    rep = _filled_replay(500, g)
+    rows = rep.sample((k, 32), g)
+    fast_loss, ref_loss = (qq.QuadraticQLoss(_net(hidden=64), gamma=0.95) for _ in range(2))
+    fast = qq.FastQuadQUpdater(
+        fast_loss, rep, generator=_gen(22), updates_per_call=k, target_update_period=100 * k
+    )
+    fast.imitate(_teacher, weight)
+    # the teacher labels the call's minibatches once, with the weights before the call
+    obs = rows[..., :OBS_DIM]  # [k, B, d]
+    before = ref_loss.value_network.greedy(obs).detach()
+    taught = _teacher(obs.reshape(-1, OBS_DIM), before.reshape(-1, 1)).view_as(before)
+    overruled = ((taught - before).abs() > qq.TEACHER_CHANGED).float()
+    assert 0 < overruled.sum() < overruled.numel()
+    opt = torch.optim.Adam(ref_loss.parameters(), lr=1e-3)
+    td_losses = []
+    for i in range(k):
+        td_loss = ref_loss(rep.to_tensordict(rows[i]))["loss_value"]
+        miss = overruled[i] * (ref_loss.value_network.greedy(obs[i]) - taught[i])
+        td_losses.append(td_loss.detach())
+        opt.zero_grad()
+        (td_loss + weight * (miss * miss).sum(-1).mean()).backward()
+        opt.step()
+    torch.testing.assert_close(fast.step(rows), torch.stack(td_losses), rtol=1e-5, atol=1e-6)
+    for (name, p_fast), p_ref in zip(
+        fast_loss.value_network.named_parameters(), ref_loss.parameters(), strict=True
+    ):
+        torch.testing.assert_close(p_fast, p_ref, rtol=1e-5, atol=1e-6, msg=name)
+    # and it moves B(s) towards the teacher where the teacher overruled it
+    after = fast_loss.value_network.greedy(obs).detach()
+    gap_before = ((before - taught) * overruled).abs().sum()
+    assert ((after - taught) * overruled).abs().sum() < gap_before
+
+
+def test_an_imitation_weight_must_be_positive():
+    g = _gen(23)
+    fast = qq.FastQuadQUpdater(
+        qq.QuadraticQLoss(_net(hidden=16), gamma=0.95), _filled_replay(100, g), generator=g
+    )
+    with pytest.raises(ValueError, match="imitation weight must be > 0, got 0.0"):
+        fast.imitate(_teacher, 0.0)

@@ -16,7 +16,7 @@ from marlmerge.config.training import TrainConfig
 from marlmerge.evaluation.registry import bare_shield_note
 from marlmerge.training.loop import GroupPolicy, transition_rows
 from marlmerge.training.ramp import RampGroupPolicy
-from marlmerge.training.shield import SHIELD_COST, make_train_shield
+from marlmerge.training.shield import SHIELD_COST, make_train_shield, shielded
 from marlmerge.training.train import train
 from marlmerge.views.ramp_flow_torchrl import RampFlowTorchEnv
 from marlmerge.views.torchrl_env import BatchedMergeEnv
@@ -68,6 +68,15 @@ def test_every_merging_vehicle_drives_what_the_shield_lets_through():
         ({"shield": "always"}, "shield must be one of"),
         ({"shield": "shield", "algorithm": "dqn"}, "dqn's discrete levels"),
         ({"shield_penalty": 1.0}, r"shield_penalty = 1.0 needs a shield"),
+        ({"shield_imitation": 2.0}, r"shield_imitation = 2.0 needs a shield to teach"),
+        (
+            {"shield": "shield", "shield_imitation": 2.0, "algorithm": "td3"},
+            r"shield_imitation = 2.0 trains the quadratic Q's fast path: .* got 'td3' on",
+        ),
+        (
+            {"shield": "shield", "shield_imitation": 2.0, "update_path": "torchrl"},
+            r"got 'quadq' on 'torchrl'",
+        ),
         ({"shield": "shield", "shield_penalty": -1.0}, "shield_penalty"),
     ],
 )
@@ -84,6 +93,10 @@ def test_bad_shield_settings_are_named(values, message):
         (
             {"shield": "shield", "shield_penalty": 1.0, "scenario": "ramp_flow"},
             "shield_penalty = 1.0 on scenario 'ramp_flow': a judging shield",
+        ),
+        (
+            {"shield": "shield", "shield_imitation": 1.0, "scenario": "ramp_flow"},
+            "shield_imitation = 1.0 on scenario 'ramp_flow': a judging shield",
         ),
     ],
 )
@@ -136,6 +149,13 @@ def test_a_judging_shield_lets_the_ego_drive_its_command_and_prices_the_overrule
     assert np.array_equal(reward, env_reward - cost[:, 0])
 
 
+def test_a_shield_that_only_teaches_leaves_the_commands_as_they_are():
+    env = BatchedMergeEnv("grid_dense_adversarial", num_worlds=16, seed=0)
+    shield = make_train_shield(TrainConfig(shield="shield", shield_imitation=1.0), env.cfg)
+    acted = FloorIt().act(env.reset()["observation"])
+    assert shielded(shield, env.reset()["observation"], acted) is acted
+
+
 def test_a_run_with_a_judging_shield_is_evaluated_bare(tmp_path, capsys):
     values = {**TINY, "scenario": "grid_dense_adversarial", "shield": "shield"}
     values["shield_penalty"] = PENALTY
@@ -158,3 +178,24 @@ def test_a_run_with_a_judging_shield_is_evaluated_bare(tmp_path, capsys):
     assert "shield_judged" not in evaluation  # driven bare, as it is meant to drive
     assert json.loads((run / "config.json").read_text())["shield_penalty"] == PENALTY
     assert bare_shield_note(str(run)) is None
+
+
+IMITATING = {**TINY, "scenario": "grid_dense_adversarial", "shield": "shield", "eval_episodes": 0}
+
+
+@pytest.mark.slow
+def test_a_shield_that_teaches_changes_the_learning_not_the_driving_and_resumes_exactly(tmp_path):
+    cfg = TrainConfig(**IMITATING, shield_imitation=5.0)
+    straight = train(cfg, tmp_path / "a", progress=False)
+    bare = train(TrainConfig(**{**IMITATING, "shield": "none"}), tmp_path / "bare", progress=False)
+    assert straight.updates == bare.updates
+    assert _read(tmp_path / "a" / "loss.csv") != _read(tmp_path / "bare" / "loss.csv")
+    # killed after 5,120 steps (checkpoint at 4,096): resumed, the teacher is still there
+    train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=5_120)
+    train(cfg, tmp_path / "b", resume=True, progress=False)
+    for name in ("loss.csv", "egos.csv"):
+        assert _read(tmp_path / "a" / name) == _read(tmp_path / "b" / name), name
+
+
+def _read(path):
+    return path.read_text().splitlines()

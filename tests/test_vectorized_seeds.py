@@ -27,9 +27,10 @@ SPEC = FastSpec(obs_dim=7, hidden=16, a_min=1e-3, a_span=5 - 1e-3, low=-4.5, spa
 P = 3 * 16 * 7 + 3 * 16 + 3 * 16 + 3
 
 
-def _chunks_agree(single, fused, n_seeds: int, chunks: int = 3) -> bool:
+def _chunks_agree(single, fused, n_seeds: int, chunks: int = 3, guided: bool = False) -> bool:
     """S seeds through `fused` against each seed through `single`, chunk after chunk: the
-    weights, both Adam moments and the losses, bit for bit."""
+    weights, both Adam moments and the losses, bit for bit (with an imitation `guide` if
+    `guided`)."""
     gen = torch.Generator().manual_seed(n_seeds)
     flat = torch.randn(n_seeds, P, generator=gen) * 0.3
     target = flat + 0.01
@@ -41,9 +42,12 @@ def _chunks_agree(single, fused, n_seeds: int, chunks: int = 3) -> bool:
         scalars = torch.tensor([[1e-3 / (1 - 0.9**t), (1 - 0.999**t) ** 0.5] for t in steps])
         rows = torch.randn(n_seeds, k, 32, 2 * 7 + 3, generator=gen)
         rows[..., 7 + 2] = (rows[..., 7 + 2] > 1.0).float()  # some terminal transitions
-        losses, _ = fused(flat, target, m, v, scalars, rows)
+        guide = torch.randn(n_seeds, k, 32, 2, generator=gen)
+        guide[..., 1] = (guide[..., 1] > 0.0).float()  # imitated rows: about half
+        extra = (guide,) if guided else ()
+        losses, _ = fused(flat, target, m, v, scalars, rows, *extra)
         for j, (w, mj, vj) in enumerate(alone):
-            loss_j = single(w, target[j], mj, vj, scalars, rows[j])
+            loss_j = single(w, target[j], mj, vj, scalars, rows[j], *(g[j] for g in extra))
             same = [torch.equal(a, b) for a, b in ((flat[j], w), (m[j], mj), (v[j], vj))]
             if not (all(same) and torch.equal(losses[j], loss_j)):
                 return False
@@ -54,6 +58,12 @@ def _chunks_agree(single, fused, n_seeds: int, chunks: int = 3) -> bool:
 def test_fused_update_is_each_seeds_own_update_bit_for_bit_eager(n_seeds):
     single = functools.partial(fast_chunk, SPEC)
     assert _chunks_agree(single, functools.partial(fused_chunk, SPEC), n_seeds)
+
+
+def test_the_fused_imitation_term_is_each_seeds_own_bit_for_bit_eager():
+    spec = dataclasses.replace(SPEC, imitation=0.5)
+    single, fused = (functools.partial(f, spec) for f in (fast_chunk, fused_chunk))
+    assert _chunks_agree(single, fused, 3, guided=True)
 
 
 @pytest.mark.slow
@@ -114,8 +124,22 @@ SMALL = {**TINY, "total_sim_steps": 3_200, "eval_episodes": 6, "eval_worlds": 3,
             "shield_penalty": 1.0,
             "scenario": "grid_dense_adversarial",
         },
+        {
+            "update_path": "fast",
+            "shield": "shield",
+            "shield_imitation": 1.0,
+            "scenario": "grid_dense_adversarial",
+        },
     ],
-    ids=["quadq-fast", "quadq-compiled", "quadq-select", "dqn", "quadq-shield", "quadq-judging"],
+    ids=[
+        "quadq-fast",
+        "quadq-compiled",
+        "quadq-select",
+        "dqn",
+        "quadq-shield",
+        "quadq-judging",
+        "quadq-imitation",
+    ],  # fmt: skip
 )
 def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
     from marlmerge.config import from_dict, to_dict
@@ -128,7 +152,7 @@ def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
     if cfg.update_path != "compiled":  # compiled, one seed is one more compilation (~1 min cold)
         train_seeds(cfg, [3], tmp_path / "one", progress=False)
         _same_run(tmp_path / "one" / "seed_3", tmp_path / "single")
-    if cfg.shield != "none" and cfg.shield_penalty == 0.0:  # evaluated behind its shield
+    if cfg.shield != "none" and cfg.shield_penalty == cfg.shield_imitation == 0.0:  # behind it
         evaluation = json.loads((tmp_path / "single" / "evaluation.json").read_text())
         assert evaluation["shield_judged"] > 0 and evaluation["shield_changed_share"] is not None
     two = _read(tmp_path / "two" / "seed_0" / "egos.csv")

@@ -219,6 +219,12 @@ class TrainConfig(RunConfig):
     learner pays for the commands gap acceptance would overrule and sees where they lead;
     `evaluation.json` measures the policy bare, as it is meant to drive. Needs a `shield`; any
     algorithm."""
+    shield_imitation: float = num(0.0, 0.0, 1000.0)
+    """> 0: the shield only judges (as with `shield_penalty`) and teaches. The ego drives its own
+    command; before each update the shield judges the greedy command B(s) of every replayed
+    state, and where it would overrule it, the loss gains `shield_imitation` x (B(s) - the
+    shield's command)^2 (`FastQuadQUpdater.imitate`). `evaluation.json` measures the policy
+    bare. Needs a `shield`; quadq on the fast or compiled path."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -242,7 +248,22 @@ class TrainConfig(RunConfig):
                     "commands: set shield = 'shield' or 'shield-left'",
                 ),
                 (
-                    self.shield == "none" or self.shield_penalty > 0.0 or self.algorithm != "dqn",
+                    self.shield_imitation == 0.0 or self.shield != "none",
+                    f"shield_imitation = {self.shield_imitation} needs a shield to teach: set "
+                    "shield = 'shield' or 'shield-left'",
+                ),
+                (
+                    self.shield_imitation == 0.0
+                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
+                    f"shield_imitation = {self.shield_imitation} trains the quadratic Q's fast "
+                    f"path: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
+                    f"{self.algorithm!r} on {self.update_path!r}",
+                ),
+                (
+                    self.shield == "none"
+                    or self.shield_penalty > 0.0
+                    or self.shield_imitation > 0.0
+                    or self.algorithm != "dqn",
                     f"shield = {self.shield!r} replaces the commands driven, which dqn's discrete "
                     "levels cannot store: use algorithm = 'quadq' or 'td3' (or shield_penalty > 0)",
                 ),

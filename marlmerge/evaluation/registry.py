@@ -215,7 +215,8 @@ def saved_files_of(spec: str) -> str:
 def bare_shield_note(spec: str) -> str | None:
     """A note for a policy spec that drives a run trained behind gap acceptance's shield
     (`TrainConfig.shield`) without it, saying how to drive it as trained; None otherwise (rules,
-    mixes, specs with a shield, runs trained bare or with a judging shield, `shield_penalty`)."""
+    mixes, specs with a shield, runs trained bare or with a judging shield: `shield_penalty`,
+    `shield_imitation`)."""
     from marlmerge.io.policy_file import read_policy
 
     if Path(spec).exists():
@@ -231,7 +232,8 @@ def bare_shield_note(spec: str) -> str | None:
     for run in runs:
         saved = read_policy(run, "ego")
         shield = saved["config"].get("shield", "none")
-        if shield != "none" and saved["config"].get("shield_penalty", 0.0) == 0.0:
+        judging = ("shield_penalty", "shield_imitation")
+        if shield != "none" and not any(saved["config"].get(key, 0.0) > 0.0 for key in judging):
             algorithm = kind or saved["algorithm"]
             return (
                 f"note: {run} was trained behind the shield ({shield}) and drives here without "

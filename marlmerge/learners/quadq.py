@@ -34,7 +34,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
@@ -586,6 +586,13 @@ def unpack_rows(
     )
 
 
+Teacher = Callable[[Tensor, Tensor], Tensor]
+"""obs [N, d], commands [N, m] (m/s^2) -> the teacher's commands [N, m]
+(`FastQuadQUpdater.imitate`)."""
+TEACHER_CHANGED = 1e-4
+"""A teacher's command further than this (m/s^2) from B(s) is imitated; nearer, it agrees."""
+
+
 @dataclass(frozen=True)
 class FastSpec:
     """Constants baked into the fast update (Python floats, so compile treats them as such)."""
@@ -603,6 +610,8 @@ class FastSpec:
     eps: float
     extra: tuple[tuple[float, float], ...] = ()
     """(low, span) of each action component after the first (`QuadraticQNet.extra_bounds`)."""
+    imitation: float = 0.0
+    """Weight of the imitation term (`FastQuadQUpdater.imitate`); 0: none, the paper's loss."""
 
     @property
     def action_dim(self) -> int:
@@ -634,6 +643,18 @@ def unflatten(flat: Tensor, obs_dim: int, hidden: int, action_dim: int = 1) -> l
     return out
 
 
+def flat_greedy(spec: FastSpec, flat: Tensor, obs: Tensor) -> Tensor:
+    """B(s) [N, m] of the network with flat parameters ``flat`` [P] for obs [N, d] (as
+    `QuadraticQNet.greedy`)."""
+    m = spec.action_dim
+    w1, b1, w2, b2 = unflatten(flat, spec.obs_dim, spec.hidden, m)
+    h = torch.relu(torch.addmm(b1, obs, w1.t())).view(obs.shape[0], 2 * m + 1, spec.hidden)
+    z_b = (h * w2).sum(-1)[:, head_rows(m)[1]] + b2[head_rows(m)[1]]  # [N, m]
+    lows = (spec.low, *(lo for lo, _ in spec.extra))
+    low, span = b_bounds(lows, (spec.span, *(sp for _, sp in spec.extra)), obs)
+    return low + span * torch.sigmoid(z_b)
+
+
 def fast_chunk(
     spec: FastSpec,
     flat: Tensor,
@@ -642,9 +663,15 @@ def fast_chunk(
     exp_avg_sq: Tensor,
     adam_scalars: Tensor,
     rows: Tensor,
+    guide: Tensor | None = None,
 ) -> Tensor:
     """k sequential TD(0) + Adam updates on packed minibatches ``rows`` [k, B, 2d + m + 2]
     (m action components: `FastSpec.action_dim`).
+
+    With ``guide`` [k, B, 2m] (a teacher's command t and a 0/1 weight w per row and component,
+    `FastQuadQUpdater.imitate`), each update's loss also has `spec.imitation` x mean over the
+    rows of sum_j w (B_j(s) - t_j)^2, which pulls B(s) towards the teacher where w is 1; the
+    losses returned stay the TD losses.
 
     ``flat``/``exp_avg``/``exp_avg_sq`` [P] are updated in place; ``target_flat`` [P] is read
     only (the target is fixed within a chunk, so all k targets come from one matmul).
@@ -688,13 +715,12 @@ def fast_chunk(
         losses.append((delta * delta).mean())
         # Backward of mean(delta^2) by hand.
         g = (delta * (2.0 / bsz)).unsqueeze(-1)  # dL/dq [B, 1]
+        dz_b = g * 2.0 * big_a * diff * span * s_b * (1.0 - s_b)  # [B, m]
+        if guide is not None:  # d/dz_b of imitation x mean(sum(w (B(s) - t)^2))
+            miss = guide[i, :, m:] * (diff + a - guide[i, :, :m])  # w (B(s) - t), [B, m]
+            dz_b = dz_b + miss * (2.0 * spec.imitation / bsz) * span * s_b * (1.0 - s_b)
         dz = torch.cat(
-            [
-                g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
-                g * 2.0 * big_a * diff * span * s_b * (1.0 - s_b),
-                g,
-            ],
-            dim=-1,
+            [g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a), dz_b, g], dim=-1
         )  # [B, n]
         dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [n, H]
         db2 = dz.sum(0)  # [n]
@@ -816,13 +842,41 @@ class FastQuadQUpdater:
         self.target_flat = self._alias(loss.target_value_network_params)
         self.exp_avg = torch.zeros_like(self.flat)
         self.exp_avg_sq = torch.zeros_like(self.flat)
+        self.teacher: Teacher | None = None
+        self._compile_kwargs = None if not compile else {"fullgraph": True, "dynamic": False}
+        if compile:
+            self._compile_kwargs.update(compile_kwargs or {})  # type: ignore[union-attr]
+        self._build_chunk()
+
+    def _build_chunk(self) -> None:
         self._eager_chunk = functools.partial(fast_chunk, self.spec)
         self._fn: Callable[..., Tensor] = self._eager_chunk
         self.compile_time_s: float | None = None
-        if compile:
-            kw = {"fullgraph": True, "dynamic": False}
-            kw.update(compile_kwargs or {})
-            self._fn = torch.compile(self._eager_chunk, **kw)
+        if self._compile_kwargs is not None:
+            self._fn = torch.compile(self._eager_chunk, **self._compile_kwargs)
+
+    def imitate(self, teacher: Teacher, weight: float) -> None:
+        """Add an imitation term of `weight` to the loss (`fast_chunk`'s `guide`): before each
+        call, `teacher` (obs [N, d], the greedy commands B(s) [N, m] -> commands [N, m], e.g.
+        the shield's verdict on them) labels the call's minibatches, and B(s) is pulled towards
+        the teacher's command wherever it differs from B(s) by more than `TEACHER_CHANGED`."""
+        if weight <= 0.0:
+            raise ValueError(f"imitation weight must be > 0, got {weight}")
+        self.teacher = teacher
+        self.spec = replace(self.spec, imitation=float(weight))
+        self._build_chunk()
+
+    def guide(self, rows: Tensor) -> Tensor | None:
+        """The teacher's labels of minibatches ``rows`` [..., B, row]: [..., B, 2m] (commands,
+        then 0/1 weights); None without a teacher."""
+        if self.teacher is None:
+            return None
+        d, m = self.spec.obs_dim, self.spec.action_dim
+        obs = rows[..., :d].reshape(-1, d)  # [N, d]
+        greedy = flat_greedy(self.spec, self.flat, obs)  # [N, m], the weights before this call
+        taught = self.teacher(obs, greedy).to(greedy.dtype)  # [N, m]
+        weight = ((taught - greedy).abs() > TEACHER_CHANGED).to(greedy.dtype)
+        return torch.cat([taught, weight], -1).view(*rows.shape[:-1], 2 * m)
 
     def _alias(self, params: TensorDictParams, flat: Tensor | None = None) -> Tensor:
         """Copy ``params`` into one flat buffer [P] (``flat``, e.g. a row of S seeds' stacked
@@ -881,18 +935,15 @@ class FastQuadQUpdater:
             rows = self.replay.sample((self.k, self.batch_size), self.generator)
         if rows.shape[0] != self.k:
             raise ValueError(f"rows must hold k={self.k} minibatches, got {rows.shape[0]}")
-        scalars = self.adam_scalars()
+        args = (self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, self.adam_scalars())
+        extra = () if self.teacher is None else (self.guide(rows),)
         if self.compile_time_s is None and self._fn is not self._eager_chunk:
             t0 = time.perf_counter()
             with notice_if_slow():
-                losses = self._fn(
-                    self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
-                )
+                losses = self._fn(*args, rows, *extra)
             self.compile_time_s = time.perf_counter() - t0
         else:
-            losses = self._fn(
-                self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, scalars, rows
-            )
+            losses = self._fn(*args, rows, *extra)
         self.advance()
         return losses
 

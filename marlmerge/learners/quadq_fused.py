@@ -49,10 +49,12 @@ def fused_chunk(
     exp_avg_sq: Tensor,
     adam_scalars: Tensor,
     rows: Tensor,
+    guide: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """`fast_chunk` for S seeds: flat, target_flat, exp_avg, exp_avg_sq [S, P] (the first,
     third and fourth updated in place), adam_scalars [k, 2] (the seeds are at the same update),
-    rows [S, k, B, 2d + 3]. Returns the losses [S, k] and the gradients [S, k, P]."""
+    rows [S, k, B, 2d + 3], each seed's imitation `guide` [S, k, B, 2] if it has a teacher.
+    Returns the losses [S, k] and the gradients [S, k, P]."""
     d, hd = spec.obs_dim, spec.hidden
     s_, k, bsz = rows.shape[:3]
     obs = rows[..., :d]  # [S, k, B, d]
@@ -84,13 +86,12 @@ def fused_chunk(
         # gradients would change how the compiler fuses (and rounds) them
         losses.append(torch.stack([_seed_loss(spec, big_a, diff, z, y, i, j) for j in range(s_)]))
         g = delta * (2.0 / bsz)
+        dz_b = g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b)  # [S, B]
+        if guide is not None:  # the imitation term, as `fast_chunk` has it
+            miss = guide[:, i, :, 1] * (diff + a - guide[:, i, :, 0])  # w (B(s) - t), [S, B]
+            dz_b = dz_b + miss * (2.0 * spec.imitation / bsz) * spec.span * s_b * (1.0 - s_b)
         dz = torch.stack(
-            [
-                g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
-                g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b),
-                g,
-            ],
-            dim=-1,
+            [g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a), dz_b, g], dim=-1
         )  # [S, B, 3]
         dw2, db2 = (dz.unsqueeze(-1) * h).sum(1), dz.sum(1)  # [S, 3, H], [S, 3]
         dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2[:, None]).view(s_, bsz, 3 * hd), 0.0)
@@ -123,7 +124,8 @@ class FusedQuadQUpdates:
 
     def __init__(self, updaters: Sequence[FastQuadQUpdater], compile: bool) -> None:
         specs = {u.spec for u in updaters}
-        if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1:
+        teachers = {u.teacher is None for u in updaters}
+        if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1 or len(teachers) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
         if next(iter(specs)).action_dim != 1:
             raise ValueError("fused updates of several seeds take one action component")
@@ -153,7 +155,9 @@ class FusedQuadQUpdates:
         if any(u.flat.data_ptr() != self.flat[j].data_ptr() for j, u in enumerate(us)):
             raise RuntimeError("a fused seed's updater was rebuilt: its state is no longer shared")
         state = (self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq)
-        args = (*state, us[0].adam_scalars(), rows)
+        args: tuple[Tensor, ...] = (*state, us[0].adam_scalars(), rows)
+        if us[0].teacher is not None:  # each seed's teacher labels its own minibatches
+            args = (*args, torch.stack([u.guide(rows[j]) for j, u in enumerate(us)]))  # type: ignore[misc]
         if self.compiled and self.compile_time_s is None:
             t0 = time.perf_counter()
             with notice_if_slow():

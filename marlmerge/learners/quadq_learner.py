@@ -20,6 +20,7 @@ from marlmerge.learners.quadq import (
     PeriodicHardUpdate,
     QuadraticQLoss,
     QuadraticQNet,
+    Teacher,
     unpack_rows,
 )
 
@@ -81,7 +82,16 @@ class QuadQLearner(Learner):
             lr=lr, target_update_period=target_update_period, updates_per_call=updates_per_call
         )
         self.sample_generator = sample_generator
+        self._imitation: tuple[Teacher, float] | None = None
         self._build_updater()
+
+    def imitate(self, teacher: Teacher, weight: float) -> None:
+        """Add an imitation term to the fast path's loss (`FastQuadQUpdater.imitate`), kept
+        when the updater is rebuilt (loading a checkpoint)."""
+        if self.fast is None:
+            raise ValueError("imitation needs update_path 'fast' or 'compiled', not 'torchrl'")
+        self._imitation = (teacher, weight)
+        self.fast.imitate(teacher, weight)
 
     def _build_updater(self) -> None:
         """The update path over the loss module's current weights (the fast path aliases them
@@ -104,6 +114,8 @@ class QuadQLearner(Learner):
             target_update_period=s["target_update_period"],
             compile=self.update_path == "compiled",
         )
+        if self._imitation is not None:
+            self.fast.imitate(*self._imitation)
 
     @property
     def compile_time_s(self) -> float | None:  # type: ignore[override]

@@ -51,7 +51,7 @@ from marlmerge.training.loop import (
     save_checkpoint,
     set_torch_threads,
 )
-from marlmerge.training.shield import TrainShield, make_train_shield, shielded
+from marlmerge.training.shield import TrainShield, make_train_shield, shielded, teach
 from marlmerge.training.train import (
     CHECKPOINT_VERSION,
     RunEnd,
@@ -220,6 +220,7 @@ def open_run(
     files.write_text(folder / "config.json", json.dumps(to_dict(cfg_s), indent=1))
     scen = run_scenario(cfg_s)
     ego = make_ego_group(cfg_s, scen, obs_dim)
+    teach(ego.learner, make_train_shield(cfg_s, scen))
     selection = make_selection(cfg_s, scen)
     logs = RunLogs.open(folder, cfg_s, scen.sim.action_repeat * scen.sim.dt_s, saved)
     run = SeedRun(cfg_s, folder, ego, logs, selection, 0, levels=levels)

@@ -9,11 +9,16 @@ It drives, or it judges:
   Alshiekh et al., AAAI 2018). The policy learns to arrive where the shield has nothing to
   overrule; it is meant to be deployed behind the same shield (`quadq@shield:RUN`), which is how
   the run's `evaluation.json` measures it.
-- **Judges** (`shield_penalty > 0`): the vehicle drives the learner's own command, and the
-  policy writes `shield_cost` [..., 1], `shield_penalty` x |command - what the shield would let
-  through| (m/s^2), which `marlmerge.training.loop.transition_rows` takes off the reward the
-  replay keeps. The learner sees where its own commands lead and pays for those gap acceptance
-  would overrule; it is meant to drive bare, and `evaluation.json` measures it so.
+- **Judges** (`shield_penalty` or `shield_imitation` > 0): the vehicle drives the learner's own
+  command, so the learner sees where its commands lead, and the shield's verdicts train it:
+  - `shield_penalty`: the policy writes `shield_cost` [..., 1], `shield_penalty` x |command -
+    what the shield would let through| (m/s^2), which `marlmerge.training.loop.transition_rows`
+    takes off the reward the replay keeps;
+  - `shield_imitation`: before each update the shield judges the greedy command of every
+    replayed state, and the loss pulls it towards the shield's where the shield would overrule
+    it (`shield_teacher`, `FastQuadQUpdater.imitate`).
+
+  Such a policy is meant to drive bare, and `evaluation.json` measures it so.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ from torch import Tensor
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import TrainConfig
+from marlmerge.learners.base import Learner
+from marlmerge.learners.quadq import Teacher
 from marlmerge.policies.gap_acceptance import GapShield, grid_shield
 
 SHIELD_COST = "shield_cost"
@@ -35,11 +42,17 @@ SHIELD_COST = "shield_cost"
 
 @dataclass(frozen=True)
 class TrainShield:
-    """The run's shield and what it does: drives (`penalty` 0) or judges (`penalty` > 0, the
-    reward lost per m/s^2 between the command and the shield's)."""
+    """The run's shield and what it does: drives (`penalty` and `imitation` 0) or judges
+    (`penalty`: the reward lost per m/s^2 between the command and the shield's; `imitation`:
+    the weight of the loss's imitation term)."""
 
     shield: GapShield
     penalty: float = 0.0
+    imitation: float = 0.0
+
+    @property
+    def drives(self) -> bool:
+        return self.penalty == 0.0 and self.imitation == 0.0
 
 
 def make_train_shield(cfg: TrainConfig, scen: ScenarioConfig) -> TrainShield | None:
@@ -49,13 +62,18 @@ def make_train_shield(cfg: TrainConfig, scen: ScenarioConfig) -> TrainShield | N
     transitions do not go through `transition_rows`)."""
     if cfg.shield == "none":
         return None
-    if cfg.shield_penalty > 0.0 and scen.ramp.flowing:
-        raise ValueError(
-            f"shield_penalty = {cfg.shield_penalty} on scenario {cfg.scenario!r}: a judging "
-            "shield trains one ego per world, not ramp flow (use shield_penalty = 0)"
-        )
+    for key, value in (
+        ("shield_penalty", cfg.shield_penalty),
+        ("shield_imitation", cfg.shield_imitation),
+    ):
+        if value > 0.0 and scen.ramp.flowing:
+            raise ValueError(
+                f"{key} = {value} on scenario {cfg.scenario!r}: a judging shield trains one "
+                f"ego per world, not ramp flow (use {key} = 0)"
+            )
     try:
-        return TrainShield(grid_shield(scen, cfg.shield == "shield-left"), cfg.shield_penalty)
+        shield = grid_shield(scen, cfg.shield == "shield-left")
+        return TrainShield(shield, cfg.shield_penalty, cfg.shield_imitation)
     except ValueError as e:
         raise ValueError(f"shield = {cfg.shield!r} on scenario {cfg.scenario!r}: {e}") from None
 
@@ -64,19 +82,36 @@ def deployed_shield(cfg: TrainConfig, scen: ScenarioConfig) -> GapShield | None:
     """The shield the run's policy is meant to drive behind (and is evaluated behind): the
     driving shield; none for a judging one."""
     train_shield = make_train_shield(cfg, scen)
-    if train_shield is None or train_shield.penalty > 0.0:
+    if train_shield is None or not train_shield.drives:
         return None
     return train_shield.shield
+
+
+def shield_teacher(shield: GapShield) -> Teacher:
+    """The shield as a teacher (`QuadQLearner.imitate`): obs [N, d] and commands [N, 1] ->
+    what it lets through [N, 1], on the commands' device."""
+
+    def teach(obs: Tensor, command: Tensor) -> Tensor:
+        driven = shield(obs.cpu().numpy(), command.cpu().numpy())
+        return torch.as_tensor(driven, dtype=command.dtype).to(command.device)
+
+    return teach
+
+
+def teach(learner: Learner, shield: TrainShield | None) -> None:
+    """Give the learner the shield as its teacher if the run has `shield_imitation`."""
+    if shield is not None and shield.imitation > 0.0:
+        learner.imitate(shield_teacher(shield.shield), shield.imitation)  # type: ignore[attr-defined]
 
 
 def shielded(
     shield: TrainShield | None, obs: Tensor, acted: dict[str, Tensor]
 ) -> dict[str, Tensor]:
     """`acted` with its `action` [..., 1] (m/s^2) replaced by what the driving `shield` lets
-    through for the observations `obs` [..., F]; with a judging one, `acted` and its
-    `shield_cost` [..., 1]; unchanged without a shield."""
-    if shield is None:
-        return acted
+    through for the observations `obs` [..., F]; with a `penalty`, `acted` and its
+    `shield_cost` [..., 1]; unchanged without a shield or with one that only teaches."""
+    if shield is None or (shield.imitation > 0.0 and shield.penalty == 0.0):
+        return acted  # no shield, or one that teaches at the learner's updates (`teach`)
     action = acted["action"]
     command = action.reshape(-1, 1).cpu().numpy()
     driven = shield.shield(obs.reshape(-1, obs.shape[-1]).cpu().numpy(), command)

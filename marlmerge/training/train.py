@@ -72,7 +72,7 @@ from marlmerge.training.ramp import (
     ramp_rows,
 )
 from marlmerge.training.select import Selection
-from marlmerge.training.shield import behind_shield, deployed_shield, make_train_shield
+from marlmerge.training.shield import behind_shield, deployed_shield, make_train_shield, teach
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 CHECKPOINT_VERSION = 3
@@ -254,6 +254,7 @@ def train(
     env = make_ramp_env(cfg, scen) if flowing else make_env(cfg)
     scen, k = env.cfg, env.cfg.sim.action_repeat
     ego = make_ego_group(cfg, scen, len(env.core.agent_features) if flowing else env.core.obs_size)
+    teach(ego.learner, shield)
     sim_steps = 0
     levels = None if flowing else env.core.scenario_source
     if ckpt is not None:
