@@ -9,7 +9,7 @@ collisions with their Wilson 95 % interval, the worst condition pooled over seed
 seed in any condition, time to merge and max jerk. Then the targets of issue "hardening": the
 hardened ego unshielded (<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no
 seed below 98 % in any condition, merge time <= gap acceptance's, max jerk <= the paper
-recipe's; not judged where the grids have no `paper` policy on a set) on every set, and behind
+recipe's; not judged where the grids have no `gap` or `paper` policy) on every set, and behind
 the shield (`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes.
 """
 
@@ -81,9 +81,10 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
            "|---|---|---|---|---|---|---|"]  # fmt: skip
     sets = sets_in(g)
     for name in sets:
-        d, gap = restrict(g[policy], name), restrict(g["gap"], name)
+        d = restrict(g[policy], name)
         if not len(d["success"]):
             continue
+        gap = restrict(g["gap"], name) if "gap" in g else None
         w, jerk = worst(d), np.nanmean(d["max_abs_jerk_mps3"])
         paper = restrict(g["paper"], name)["max_abs_jerk_mps3"] if "paper" in g else []
         paper_jerk = np.nanmean(paper) if len(paper) else None
@@ -92,7 +93,10 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
             (d["success"].mean() >= 0.995, pct(d["success"])),
             (w.success >= 0.99, f"{100 * w.success:.1f} %"),
             (w.run_success >= 0.98, f"{100 * w.run_success:.1f} %"),
-            (merge_time(d) <= merge_time(gap), f"{merge_time(d):.1f} vs {merge_time(gap):.1f} s"),
+            (
+                None if gap is None else merge_time(d) <= merge_time(gap),
+                f"{merge_time(d):.1f} vs {'-' if gap is None else f'{merge_time(gap):.1f}'} s",
+            ),
             (
                 None if paper_jerk is None else jerk <= paper_jerk,
                 f"{jerk:.1f} vs {'-' if paper_jerk is None else f'{paper_jerk:.1f}'}",
