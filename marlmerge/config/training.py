@@ -169,9 +169,10 @@ class SelectConfig:
     spike (the paper's Fig. 4): an ego that was fine can be broken by the next few hundred
     thousand updates and repaired after them, so the last weights are a draw from that cycle.
     From `start_fraction` of the run on, every `every_sim_steps` and at the end, the greedy
-    policy drives `episodes` roads of the training scenario seeded from `seed` (apart from the
-    evaluation's and every held-out set's); `policy.pt` is the one with the fewest failures
-    (collisions + truncations), the latest on ties, and `policy_last.pt` the last."""
+    policy drives `episodes` roads of the training scenario (or `scenario`) seeded from `seed`
+    (apart from the evaluation's and every held-out set's); `policy.pt` is the one with the
+    fewest failures (collisions + truncations), the latest on ties, and `policy_last.pt` the
+    last."""
 
     every_sim_steps: int = num(0, 0, MAX_STEPS)
     """0: off (`policy.pt` is the last policy, as in the paper)."""
@@ -180,6 +181,8 @@ class SelectConfig:
     start_fraction: float = num(0.5, 0.0, 1.0)
     """Candidates from this fraction of `total_sim_steps` on (by default once the exploration
     noise has decayed)."""
+    scenario: str = ""
+    """The scenario preset (or path) of the validation roads; "": the training scenario."""
 
 
 @dataclass(frozen=True)
@@ -284,6 +287,20 @@ class TrainConfig(RunConfig):
                 resolve_config(preset)
             except (ValueError, OSError) as e:
                 raise ValueError(f"levels.seed_presets[{i}] = {preset!r}: {e}") from None
+        if self.select.scenario:
+            try:
+                chosen_on = resolve_config(self.select.scenario).name
+            except (ValueError, OSError) as e:
+                raise ValueError(f"select.scenario = {self.select.scenario!r}: {e}") from None
+            require(
+                [
+                    (
+                        not chosen_on.startswith(("heldout", "lapses_heldout")),
+                        f"select.scenario = {self.select.scenario!r} is a held-out set "
+                        f"({chosen_on}): choosing a policy on it would tune on the test",
+                    )
+                ]
+            )
 
 
 FLAT_KEYS = {

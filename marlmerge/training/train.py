@@ -396,9 +396,12 @@ def ego_rows(ego: LearningGroup, batch) -> torch.Tensor:
 
 
 def make_selection(cfg: TrainConfig, scen: ScenarioConfig) -> Selection | None:
-    """The run's checkpoint selection (`[select]`) on its own scenario; None when off."""
+    """The run's checkpoint selection (`[select]`) on its own scenario (or `select.scenario`);
+    None when off."""
     if cfg.select.every_sim_steps == 0:
         return None
+    if cfg.select.scenario:
+        scen = resolve_config(cfg.select.scenario)
     return Selection(cfg.select, scen, cfg.total_sim_steps, cfg.eval_worlds)
 
 
