@@ -8,11 +8,12 @@ import torch
 from test_train import TINY as TRAIN_TINY
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.config.presets import load_scenario, preset_dir
 from marlmerge.config.training import SelectConfig, TrainConfig
 from marlmerge.io import files
 from marlmerge.learners.base import Learner
 from marlmerge.training.select import Selection
-from marlmerge.training.train import load_train_config, train
+from marlmerge.training.train import load_train_config, make_selection, train
 
 TINY = {**TRAIN_TINY, "eval_episodes": 0}
 SELECT = {"every_sim_steps": 1_024, "episodes": 8, "start_fraction": 0.25}
@@ -96,3 +97,16 @@ def test_selection_changes_nothing_in_training_and_resumes_exactly(tmp_path):
     train(chosen, tmp_path / "b", resume=True, progress=False)
     assert json.loads((tmp_path / "b" / "selection.json").read_text()) == summary
     assert _same(_weights(tmp_path / "a" / "policy.pt"), _weights(tmp_path / "b" / "policy.pt"))
+
+
+def test_the_validation_roads_can_be_another_scenarios_but_never_a_held_out_set():
+    cfg = TrainConfig(**{**TINY, "select": SelectConfig(**SELECT, scenario="hardened_roads")})
+    sel = make_selection(cfg, load_scenario(preset_dir("envs") / "default.toml"))
+    assert sel is not None and sel.scenario.name == "hardened_roads"
+    assert make_selection(TrainConfig(**{**TINY, "select": SelectConfig(**SELECT)}),
+                          ScenarioConfig()).scenario == ScenarioConfig()  # fmt: skip
+    for held_out in ("heldout11_03", "heldout_aggressive", "lapses_heldout2"):
+        with pytest.raises(ValueError, match=f"select.scenario = '{held_out}' is a held-out set"):
+            load_train_config("quick", **{"select.scenario": held_out})
+    with pytest.raises(ValueError, match="select.scenario = 'nope': unknown scenario preset"):
+        load_train_config("quick", **{"select.scenario": "nope"})
