@@ -86,8 +86,10 @@ hardened recipe trained behind the shield instead (docs/stress.md)."""
 HELDOUT11_SEED = 20261216
 """The seed the eleventh held-out set (`envs/heldout11_*`) was drawn with: committed before
 anyone ran a policy on it, for the round that trains the hardened recipe bare with the shield's
-verdicts as a cost (`TrainConfig.shield_penalty`), after the tenth set had judged the recipe
-trained behind the shield."""
+verdicts as a cost (`TrainConfig.shield_penalty`) or as a teacher (`shield_imitation`), after
+the tenth set had judged the recipe trained behind the shield. Both failed on their validation
+roads first; it judged the hardened recipe's checkpoint chosen on the stress space's roads
+(`select.scenario`) instead (docs/stress.md)."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,

@@ -8,8 +8,8 @@ the greedy policy with the fewest failures on its own validation roads, not the 
 
 Validation roads are the training scenario's (or `select.scenario`'s, which may not be a held-out
 set), seeded from `select.seed`: never the roads of the final evaluation (`eval_seed`) or of a
-held-out set, so choosing on them tunes nothing that is reported. The history and the best policy live in the checkpoint: a resumed run selects as the
-uninterrupted one.
+held-out set, so choosing on them tunes nothing that is reported. The history and the best
+policy live in the checkpoint: a resumed run selects as the uninterrupted one.
 """
 
 from __future__ import annotations
