@@ -121,7 +121,7 @@ def train_cmd(args: argparse.Namespace) -> int:
     )
     if result.evaluation is not None:
         _print_evaluation(result.evaluation)
-    if cfg.shield != "none" and cfg.shield_penalty == 0.0 and cfg.shield_imitation == 0.0:
+    if cfg.shield_drives:
         print(
             f"trained (and evaluated) behind gap acceptance's shield: drive it the same way, "
             f"as {cfg.algorithm}@{cfg.shield}:{out}"

@@ -22,6 +22,9 @@ ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
 TRAIN_SHIELDS: tuple[str, ...] = ("none", "shield", "shield-left")
 """Gap acceptance's shield in the training loop (`TrainConfig.shield`), as the grid names it."""
 
+JUDGING_KEYS: tuple[str, ...] = ("shield_penalty", "shield_imitation")
+"""The `TrainConfig` keys that make the shield judge instead of drive (either > 0)."""
+
 UPDATE_PATHS = ("compiled", "fast", "torchrl")
 DEVICE_PATTERN = r"cpu|cuda(:[0-9]+)?|mps"
 """The values `TrainConfig.device` takes (whether the machine has it is checked when a run
@@ -233,6 +236,11 @@ class TrainConfig(RunConfig):
     levels: LevelsConfig = field(default_factory=LevelsConfig)
     select: SelectConfig = field(default_factory=SelectConfig)
 
+    @property
+    def shield_drives(self) -> bool:
+        """The vehicles drive what the shield lets through (a `shield` and no `JUDGING_KEYS`)."""
+        return self.shield != "none" and all(getattr(self, key) == 0.0 for key in JUDGING_KEYS)
+
     def __post_init__(self) -> None:
         self._check()
         require(
@@ -263,10 +271,7 @@ class TrainConfig(RunConfig):
                     f"{self.algorithm!r} on {self.update_path!r}",
                 ),
                 (
-                    self.shield == "none"
-                    or self.shield_penalty > 0.0
-                    or self.shield_imitation > 0.0
-                    or self.algorithm != "dqn",
+                    not self.shield_drives or self.algorithm != "dqn",
                     f"shield = {self.shield!r} replaces the commands driven, which dqn's discrete "
                     "levels cannot store: use algorithm = 'quadq' or 'td3' (or shield_penalty > 0)",
                 ),

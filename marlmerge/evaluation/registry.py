@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.config.training import JUDGING_KEYS
 from marlmerge.evaluation.rollout import EgoPolicy
 from marlmerge.io.files import saved_digest
 from marlmerge.io.policy_file import DEFAULT_FILE
@@ -232,8 +233,8 @@ def bare_shield_note(spec: str) -> str | None:
     for run in runs:
         saved = read_policy(run, "ego")
         shield = saved["config"].get("shield", "none")
-        judging = ("shield_penalty", "shield_imitation")
-        if shield != "none" and not any(saved["config"].get(key, 0.0) > 0.0 for key in judging):
+        judging = any(saved["config"].get(key, 0.0) > 0.0 for key in JUDGING_KEYS)
+        if shield != "none" and not judging:
             algorithm = kind or saved["algorithm"]
             return (
                 f"note: {run} was trained behind the shield ({shield}) and drives here without "

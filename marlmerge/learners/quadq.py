@@ -648,8 +648,9 @@ def flat_greedy(spec: FastSpec, flat: Tensor, obs: Tensor) -> Tensor:
     `QuadraticQNet.greedy`)."""
     m = spec.action_dim
     w1, b1, w2, b2 = unflatten(flat, spec.obs_dim, spec.hidden, m)
+    rows_b = head_rows(m)[1]
     h = torch.relu(torch.addmm(b1, obs, w1.t())).view(obs.shape[0], 2 * m + 1, spec.hidden)
-    z_b = (h * w2).sum(-1)[:, head_rows(m)[1]] + b2[head_rows(m)[1]]  # [N, m]
+    z_b = (h * w2).sum(-1)[:, rows_b] + b2[rows_b]  # [N, m]
     lows = (spec.low, *(lo for lo, _ in spec.extra))
     low, span = b_bounds(lows, (spec.span, *(sp for _, sp in spec.extra)), obs)
     return low + span * torch.sigmoid(z_b)
@@ -843,9 +844,9 @@ class FastQuadQUpdater:
         self.exp_avg = torch.zeros_like(self.flat)
         self.exp_avg_sq = torch.zeros_like(self.flat)
         self.teacher: Teacher | None = None
-        self._compile_kwargs = None if not compile else {"fullgraph": True, "dynamic": False}
-        if compile:
-            self._compile_kwargs.update(compile_kwargs or {})  # type: ignore[union-attr]
+        self._compile_kwargs = (
+            {"fullgraph": True, "dynamic": False, **(compile_kwargs or {})} if compile else None
+        )
         self._build_chunk()
 
     def _build_chunk(self) -> None:

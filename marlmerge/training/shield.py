@@ -1,8 +1,10 @@
-"""Gap acceptance's shield in the training loop (`TrainConfig.shield`, `shield_penalty`).
+"""Gap acceptance's shield in the training loop (`TrainConfig.shield`, `shield_penalty`,
+`shield_imitation`).
 
 It drives, or it judges:
 
-- **Drives** (`shield_penalty = 0`): while collecting, the learner's command for each acting
+- **Drives** (`shield_penalty` and `shield_imitation` 0, `TrainConfig.shield_drives`): while
+  collecting, the learner's command for each acting
   vehicle passes through `GapShield`, as the grid's `@shield` (or `@shield-left`) passes a
   trained policy's: the vehicle drives what the shield lets through, and the replay keeps that
   command, so the learner's Q (or critic) is of the commands actually driven (shielded learning,
@@ -31,7 +33,7 @@ import torch
 from torch import Tensor
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.config.training import TrainConfig
+from marlmerge.config.training import JUDGING_KEYS, TrainConfig
 from marlmerge.learners.base import Learner
 from marlmerge.learners.quadq import Teacher
 from marlmerge.policies.gap_acceptance import GapShield, grid_shield
@@ -62,10 +64,8 @@ def make_train_shield(cfg: TrainConfig, scen: ScenarioConfig) -> TrainShield | N
     transitions do not go through `transition_rows`)."""
     if cfg.shield == "none":
         return None
-    for key, value in (
-        ("shield_penalty", cfg.shield_penalty),
-        ("shield_imitation", cfg.shield_imitation),
-    ):
+    for key in JUDGING_KEYS:
+        value = getattr(cfg, key)
         if value > 0.0 and scen.ramp.flowing:
             raise ValueError(
                 f"{key} = {value} on scenario {cfg.scenario!r}: a judging shield trains one "
@@ -81,10 +81,7 @@ def make_train_shield(cfg: TrainConfig, scen: ScenarioConfig) -> TrainShield | N
 def deployed_shield(cfg: TrainConfig, scen: ScenarioConfig) -> GapShield | None:
     """The shield the run's policy is meant to drive behind (and is evaluated behind): the
     driving shield; none for a judging one."""
-    train_shield = make_train_shield(cfg, scen)
-    if train_shield is None or not train_shield.drives:
-        return None
-    return train_shield.shield
+    return grid_shield(scen, cfg.shield == "shield-left") if cfg.shield_drives else None
 
 
 def shield_teacher(shield: GapShield) -> Teacher:
