@@ -1,13 +1,19 @@
-"""Where a seed trained in groups of different sizes could start to differ (docs/scale-out.md):
-each check runs one part of `marlmerge train --seeds` for seed 3 in a group of 2 (seeds 3-4) and
-in a group of 5 (seeds 0-4) and prints, as JSON, whether the two stay equal bit for bit.
+"""Whether a seed trained in groups of different sizes stays its own run (docs/scale-out.md):
+each check runs one part of `marlmerge train --seeds` for seed 3 alone, in a group of 2 (seeds
+3-4) and in a group of 5 (seeds 0-4), and prints, as JSON, where they first differ (None: equal
+bit for bit).
 
-- `env`: `hardened_mix` without level replay, the same commands, `--steps` env steps;
+- `env`: `hardened_mix` (a new road after every ego) without level replay, the same commands,
+  `--steps` env steps of `--worlds` worlds per seed, with each seed's worlds a draw group as
+  training builds them (`marlmerge.training.seeds.make_seed_env`) and without (one group: how
+  the env was built before; a reset in any world drew ahead in every world, and a world's new
+  road discarded what it had drawn, so seed 3's roads depended on the other seeds' resets);
 - `act`: the greedy command of seed 3's slice of the observations against a copy of it;
 - `fused`: the compiled fused update from a run's trained state, `--calls` calls on the same
-  minibatches (needs `RUN/seeds_checkpoint.pt` of a 5-seed run, e.g. `runs/hardened`).
+  minibatches (needs `RUN/seeds_checkpoint.pt` of a 5-seed run, e.g. `runs/hardened`; skipped
+  without one).
 
-    python benchmarks/seed_drift.py [--run runs/hardened] [--steps 3000] [--calls 300]
+    python benchmarks/seed_drift.py [--run runs/hardened] [--steps 600] [--worlds 4] [--calls 300]
 """
 
 from __future__ import annotations
@@ -31,10 +37,14 @@ from marlmerge.views.torchrl_env import BatchedMergeEnv
 B = 32  # worlds per seed (the hardened recipe's)
 
 
-def seed_env(seeds: list[int]) -> BatchedMergeEnv:
-    """The worlds of `seeds`, seeded as `marlmerge.training.seeds.make_seed_env` seeds them."""
-    worlds = [np.random.SeedSequence(s, spawn_key=(i,)) for s in seeds for i in range(B)]
-    return BatchedMergeEnv("hardened_mix", num_worlds=len(seeds) * B, seed=worlds)
+def seed_env(seeds: list[int], b: int, grouped: bool) -> BatchedMergeEnv:
+    """The worlds of `seeds`, `b` per seed, seeded as `make_seed_env` seeds them; `grouped`:
+    each seed's worlds a draw group, as `make_seed_env` builds them."""
+    worlds = [np.random.SeedSequence(s, spawn_key=(i,)) for s in seeds for i in range(b)]
+    groups = np.repeat(np.arange(len(seeds)), b) if grouped else None
+    return BatchedMergeEnv(
+        "hardened_mix", num_worlds=len(seeds) * b, seed=worlds, world_groups=groups
+    )
 
 
 def groups(ckpt: dict, seeds: list[int]) -> list:
@@ -48,23 +58,36 @@ def groups(ckpt: dict, seeds: list[int]) -> list:
     return out
 
 
-def check_env_and_act(net, steps: int) -> dict:
-    """Seed 3's worlds among 2 seeds' and among 5 seeds', driven by `net` (+ a fixed wobble)."""
-    envs, where = {2: seed_env([3, 4]), 5: seed_env([0, 1, 2, 3, 4])}, {2: 0, 5: 3}
+def check_env(steps: int, b: int, grouped: bool) -> dict:
+    """Seed 3's worlds alone, among 2 seeds' and among 5 seeds', every world driving the same
+    fixed commands: the first env step where either group's slice differs from seed 3 alone."""
+    where = {1: 0, 2: 0, 5: 3}
+    envs = {k: seed_env([[3], [3, 4], [0, 1, 2, 3, 4]][i], b, grouped) for i, k in enumerate(where)}
     tds = {k: e.reset() for k, e in envs.items()}
-    act_differs = 0
     for step in range(steps):
         for k, env in envs.items():
-            obs = tds[k]["observation"]  # [k * B, d]
-            wobble = 0.3 * torch.sin(torch.arange(float(B)) + step).unsqueeze(-1)
-            acts = [net.greedy(obs[j * B : (j + 1) * B]) + wobble for j in range(k)]
-            sl = obs[where[k] * B : (where[k] + 1) * B]
-            act_differs += int(not torch.equal(net.greedy(sl), net.greedy(sl.clone())))
-            tds[k]["action"] = torch.cat(acts)
-            tds[k] = env.step(tds[k])["next"]
-        if not torch.equal(tds[2]["observation"][:B], tds[5]["observation"][3 * B : 4 * B]):
-            return {"env_first_difference": step, "act_differences": act_differs}
-    return {"env_first_difference": None, "act_differences": act_differs}
+            wobble = torch.sin(torch.arange(float(b)) + 0.7 * step).repeat(k)
+            tds[k]["action"] = (1.5 * wobble).unsqueeze(-1)
+            _, tds[k] = env.step_and_maybe_reset(tds[k])
+        alone = tds[1]["observation"]
+        for k in (2, 5):
+            if not torch.equal(alone, tds[k]["observation"][where[k] * b : (where[k] + 1) * b]):
+                return {"first_difference": step, "group_size": k}
+    return {"first_difference": None}
+
+
+def check_act(net, steps: int) -> int:
+    """Env steps (of 5 seeds' worlds) where the greedy command of seed 3's slice differs from
+    the command of a copy of it."""
+    env = seed_env([0, 1, 2, 3, 4], B, grouped=True)
+    td, differs = env.reset(), 0
+    for _ in range(steps):
+        obs = td["observation"]  # [5 B, d]
+        sl = obs[3 * B : 4 * B]
+        differs += int(not torch.equal(net.greedy(sl), net.greedy(sl.clone())))
+        td["action"] = net.greedy(obs)
+        _, td = env.step_and_maybe_reset(td)
+    return differs
 
 
 def check_fused(ckpt: dict, calls: int) -> dict:
@@ -84,20 +107,26 @@ def check_fused(ckpt: dict, calls: int) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--run", default="runs/hardened", help="a 5-seed run of the hardened recipe")
-    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--steps", type=int, default=600)
+    p.add_argument("--worlds", type=int, default=4, help="worlds per seed in the env check")
     p.add_argument("--calls", type=int, default=300)
     args = p.parse_args()
     set_torch_threads(1)
-    ckpt = files.load(Path(args.run) / "seeds_checkpoint.pt")
-    if ckpt["seeds"] != [0, 1, 2, 3, 4]:
-        raise SystemExit(f"--run {args.run}: needs a run of seeds 0-4, got {ckpt['seeds']}")
-    weights = ckpt["runs"][3]["group"]["learner"]["loss"]
-    ckpt["obs_dim"] = weights["value_network_params.hidden.weight"].shape[1]
-    net = groups(ckpt, [3])[0].learner.net
-    result = {"steps": args.steps, "calls": args.calls}
+    result: dict = {"steps": args.steps, "worlds": args.worlds}
     with torch.no_grad():
-        result.update(check_env_and_act(net, args.steps))
-    result.update(check_fused(ckpt, args.calls))
+        result["env_grouped"] = check_env(args.steps, args.worlds, grouped=True)
+        result["env_ungrouped"] = check_env(args.steps, args.worlds, grouped=False)
+    path = Path(args.run) / "seeds_checkpoint.pt"
+    if path.exists():
+        ckpt = files.load(path)
+        if ckpt["seeds"] != [0, 1, 2, 3, 4]:
+            raise SystemExit(f"--run {args.run}: needs a run of seeds 0-4, got {ckpt['seeds']}")
+        weights = ckpt["runs"][3]["group"]["learner"]["loss"]
+        ckpt["obs_dim"] = weights["value_network_params.hidden.weight"].shape[1]
+        with torch.no_grad():
+            result["act_differences"] = check_act(groups(ckpt, [3])[0].learner.net, 300)
+        result["calls"] = args.calls
+        result.update(check_fused(ckpt, args.calls))
     print(json.dumps(result))
 
 

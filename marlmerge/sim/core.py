@@ -81,6 +81,29 @@ def _announce_compilation(what: str) -> threading.Timer | None:
     return timer
 
 
+def draw_groups(
+    batch_size: int, world_groups: Sequence[int] | np.ndarray | None
+) -> np.ndarray | None:
+    """[B] each world's group numbered 0 .. G - 1 (in order of first appearance), or None for
+    one group. A group is the unit the core draws ahead for: a world's random numbers are drawn
+    in chunks, ahead of need (`marlmerge.sim.streams`), and a reset discards what its world
+    drew for the old road, so each reset (and each call of another step count) draws ahead in
+    every world of its group and in no other. The worlds of a group then run bit for bit as a
+    core of those worlds alone (`marlmerge train --seeds`: one group per seed)."""
+    if world_groups is None:
+        return None
+    g = np.asarray(world_groups)
+    if g.shape != (batch_size,) or not np.issubdtype(g.dtype, np.integer) or np.any(g < 0):
+        raise ValueError(
+            f"world_groups: one non-negative integer per world ({batch_size}), got {world_groups!r}"
+        )
+    _, first, dense = np.unique(g, return_index=True, return_inverse=True)
+    if first.size == 1:
+        return None
+    order = np.argsort(np.argsort(first))  # number the groups in order of first appearance
+    return order[dense].astype(np.int64)
+
+
 def initial_slots(cfg: ScenarioConfig) -> int:
     """Slots per world to start with: the ego plus twice the vehicles expected on both lanes at
     the configured flow and a slow speed, and room for a few calls' arrivals."""
@@ -113,6 +136,7 @@ class TrafficCore:
         scenarios: Sequence[ScenarioConfig] | None = None,
         scenario_source: ScenarioSource | None = None,
         proposal: Proposal | None = None,
+        world_groups: Sequence[int] | np.ndarray | None = None,
     ):
         """scenarios: one per world, the traffic and road world b runs (each may differ from
         `cfg` only in what `[sample]` draws, `WORLD_KEYS`); None: every world runs `cfg`.
@@ -120,7 +144,10 @@ class TrafficCore:
         world's own draw (`ScenarioSource`); `world_tag` [B] holds the tag of its choice.
         proposal: draw the traffic the first ego of each reset meets from this proposal
         (`marlmerge.sim.proposal`); `streams.tilted.log_w` [B] holds each world's exact
-        log-likelihood ratio. None (default): the scenario's own draws, bit for bit."""
+        log-likelihood ratio. None (default): the scenario's own draws, bit for bit.
+        world_groups: [B] a group number per world (`draw_groups`): the worlds of each group run
+        exactly as a core of that group's worlds alone would (S seeds in one core); None: one
+        group."""
         batch_size = check_count("batch_size", batch_size)
         check_world_scenarios(cfg, batch_size, scenarios)
         self.cfg = cfg
@@ -164,7 +191,15 @@ class TrafficCore:
         else:
             self._kernel, self._worlds = kernels.rollout, (0, batch_size)
         self._called = False
-        self._served_k = -1
+        self._group_of = draw_groups(batch_size, world_groups)
+        """[B] each world's group (0 .. G - 1), or None: one group."""
+        self._all_rows = np.arange(batch_size)
+        n_groups = 0 if self._group_of is None else int(self._group_of.max()) + 1
+        self._group_slots = np.full(n_groups, self.n_slots, dtype=np.int64)
+        """[G] the slots each draw group would have alone (`_reserve_slots`)."""
+        self._no_noise_need = np.zeros(batch_size, dtype=np.int64)
+        self._served_k = np.full(batch_size, -1, dtype=np.int64)
+        """[B] the step count each world was last drawn ahead for (equal within a group)."""
         self._resampling = cfg.sample.active  # (config properties cost a call each time)
         self._noisy = cfg.sensing.noisy
         self.state = TrafficState(self)
@@ -218,6 +253,23 @@ class TrafficCore:
             [self.lanes, np.full(self.lanes.shape[:2] + (pad,), -1, dtype=np.int64)], axis=2
         )
 
+    def _reserve_slots(self, rows: np.ndarray, need: np.ndarray) -> None:
+        """At least `need` [len(rows)] slots for the worlds `rows`, doubling the slots when
+        short. With draw groups each group counts its own slots, as a core of its worlds alone
+        would, and the arrays hold the most any group has (`draw_groups`)."""
+        if self._group_of is None:
+            top = int(need.max())
+            if top > self.n_slots:
+                self._grow_slots(max(top, 2 * self.n_slots))
+            return
+        groups = self._group_of[rows]
+        for g in np.unique(groups).tolist():
+            top = int(need[groups == g].max())
+            if top > self._group_slots[g]:
+                self._group_slots[g] = max(top, 2 * int(self._group_slots[g]))
+        if int(self._group_slots.max()) > self.n_slots:
+            self._grow_slots(int(self._group_slots.max()))
+
     def _grow_rings(self, q_len: int) -> None:
         """Longer arrival rings, each unrolled so that its head is at index 0."""
         old_q = self.sched.shape[2]
@@ -256,9 +308,7 @@ class TrafficCore:
         rows = np.arange(self.batch_size) if rows is None else rows
         if rows.size:
             per_step = 3 if self.cfg.ramp.flowing else 2  # arrivals a step at most
-            need_slots = int(self.wi[rows, L.WI_N_ACTIVE].max()) + per_step * k + 3
-            if need_slots > self.n_slots:
-                self._grow_slots(max(need_slots, 2 * self.n_slots))
+            self._reserve_slots(rows, self.wi[rows, L.WI_N_ACTIVE] + per_step * k + 3)
         dt = self.cfg.sim.dt_s
         for b in rows.tolist():
             horizon = self.wf[b, L.WF_T] + (k + 1) * dt
@@ -283,7 +333,13 @@ class TrafficCore:
                 self._push(b, EGO_STREAM, self.streams.departures(b))
             self._top_up_noise(b, k + 2)
             self.wi[b, L.WI_NEED] = 0
-        self._served_k = k
+        self._served_k[self._group_rows(rows)] = k
+
+    def _group_rows(self, rows: np.ndarray) -> np.ndarray:
+        """The worlds of every group that holds one of `rows` (all worlds with one group)."""
+        if self._group_of is None:
+            return self._all_rows
+        return np.flatnonzero(np.isin(self._group_of, self._group_of[rows]))
 
     def _top_up_noise(self, b: int, need: int) -> None:
         """At least `need` drawn measurement errors in world `b`'s noise ring (noise on)."""
@@ -337,7 +393,8 @@ class TrafficCore:
         sel = np.zeros(self.batch_size, dtype=bool)
         sel[rows] = True
         self._clear(rows)
-        self._served_k = -1  # the cleared worlds hold nothing drawn: the next call draws ahead
+        # the cleared worlds hold nothing drawn: the next call draws ahead in their groups
+        self._served_k[self._group_rows(rows)] = -1
         for b in rows:
             if self.cfg.sample.active:
                 self._draw_scenario(b)
@@ -416,8 +473,7 @@ class TrafficCore:
     def _place(self, b: int, vehicles: dict[str, np.ndarray]) -> None:
         """Put filled-in mainline vehicles into slots 1.. of world `b` (lanes rebuilt after)."""
         n = vehicles["x_m"].size
-        if n + 1 + 2 * WARMUP_CHUNK_STEPS + 2 > self.n_slots:
-            self._grow_slots(max(n + 1 + 2 * WARMUP_CHUNK_STEPS + 2, 2 * self.n_slots))
+        self._reserve_slots(np.array([b]), np.array([n + 1 + 2 * WARMUP_CHUNK_STEPS + 2]))
         s = np.arange(1, n + 1)
         for row, key in (
             (L.VF_X, "x_m"),
@@ -451,12 +507,13 @@ class TrafficCore:
                 self.reset(mask=redraw)
                 sel = sel & ~redraw
         # a departure measures once (noise on); the next call needs k + 2
-        noise_need = max(self._served_k, 1) + 3 if self._noisy else 0
-        status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, noise_need)
+        noise_need = np.maximum(self._served_k, 1) + 3 if self._noisy else self._no_noise_need
+        status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, noise_need, True)
         if status < 0:  # only after direct set-ups: every call leaves room for one next_ego
             short = np.flatnonzero(sel & (self.wi[:, L.WI_NEED] != 0))  # flagged by the kernel
-            self._serve(max(self._served_k, 1), short)
-            status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, -1)
+            for k in np.unique(self._served_k[short]).tolist():  # one k with one group
+                self._serve(max(k, 1), short[self._served_k[short] == k])
+            status = kernels.next_ego(self.arrays, self.sensor, self.params, sel, noise_need, False)
         if status:
             self._check_overflow()
 
@@ -558,8 +615,12 @@ class TrafficCore:
         b, n_agents = self.batch_size, roster.n_agents  # ego_cmd [B, 2], roster_cmd [B, K, 2]
         if roster.rows.shape != (L.RO_ROWS, b, n_agents):
             raise ValueError(f"roster of shape {roster.rows.shape} does not fit {b} worlds")
-        if k != self._served_k:
-            self._serve(k)
+        active = self._group_rows(
+            self._all_rows if step_mask is None else np.flatnonzero(step_mask)
+        )  # the worlds of the groups that step
+        stale = active[self._served_k[active] != k]  # whole groups: drawn ahead for another k
+        if stale.size:
+            self._serve(k, stale)
         mask_before = roster.rows[L.RO_MASK].copy() if n_agents else None
         ego_terms = np.empty((b, len(EGO_TERMS)))
         hw_terms = np.empty((b, n_agents, len(LEARNED_HIGHWAY_TERMS)))
@@ -579,8 +640,8 @@ class TrafficCore:
         self._called = True
         if status >= kernels.OVERFLOW:
             self._check_overflow()
-        if status:
-            self._serve(k, np.flatnonzero(self.wi[:, L.WI_NEED]))
+        if status or self._group_of is not None:
+            self._serve_needs(k, active)
         no_agents = _NO_AGENTS[:b]
         return Rollout(
             substeps=call[L.WI_SUBSTEPS - L.WI_STEP_OUTCOME],
@@ -597,6 +658,23 @@ class TrafficCore:
             ego_rear=call[L.WI_EGO_REAR - L.WI_STEP_OUTCOME] != 0,
             filter_interventions=self._interventions(),
         )
+
+    def _serve_needs(self, k: int, active: np.ndarray) -> None:
+        """After a call of `k` steps: draw ahead and make room where the kernels flagged a need
+        (`WI_NEED`). With draw groups, only in the groups that stepped (`active`; the others
+        were judged against this call's k, not their own), and a world is short of slots
+        against its group's count (`_reserve_slots`), not the arrays' (`draw_groups`)."""
+        need = self.wi[:, L.WI_NEED] != 0
+        if self._group_of is not None:
+            per_step = 3 if self.cfg.ramp.flowing else 2
+            cap = self._group_slots[self._group_of]  # [B]
+            need |= self.wi[:, L.WI_N_ACTIVE] + per_step * k + 3 > cap
+            idle = np.ones(self.batch_size, dtype=bool)
+            idle[active] = False
+            need &= ~idle
+            self.wi[idle, L.WI_NEED] = 0
+        if need.any():
+            self._serve(k, np.flatnonzero(need))
 
     def _interventions(self) -> np.ndarray | None:
         """[B] the safety filter's overrides in each world's current (or just ended) episode;
@@ -708,8 +786,8 @@ class TrafficCore:
             raise ValueError(f"lane must be RIGHT (0) or LEFT (1), got {lane!r}")
         if not (self.cfg.road.x_entrance_m <= x_m <= self.cfg.road.x_exit_m) or v_mps < 0:
             raise ValueError(f"vehicle at x_m={x_m}, v_mps={v_mps} is off the road")
-        if int(self.wi[world, L.WI_N_ACTIVE]) + 2 * max(self._served_k, 1) + 3 > self.n_slots:
-            self._grow_slots(2 * self.n_slots)
+        need = int(self.wi[world, L.WI_N_ACTIVE]) + 2 * max(int(self._served_k[world]), 1) + 3
+        self._reserve_slots(np.array([world]), np.array([need]))
         free = np.flatnonzero(self.vi[world, L.VI_ACTIVE, 1:] == 0)
         s = int(free[0]) + 1
         d = self.cfg.driver
@@ -752,7 +830,7 @@ class TrafficCore:
         if not self.cfg.sensing.active:
             return
         for b in np.flatnonzero(sel).tolist():  # one measurement now, k + 2 for the next call
-            self._top_up_noise(b, max(self._served_k, 1) + 3)
+            self._top_up_noise(b, max(int(self._served_k[b]), 1) + 3)
         kernels.sense_restart(self.arrays, self.sensor, self.params, sel)
         self._check_overflow()
 
@@ -776,13 +854,18 @@ class TrafficCore:
                 "state_dict: a core drawing from a proposal is not saved (its estimates keep "
                 "their per-batch results instead; marlmerge.evaluation.estimate)"
             )
-        return {
+        state = {
             "version": STATE_DICT_VERSION,
             "config": to_dict(self.cfg),
             "batch_size": self.batch_size,
             "arrays": {name: getattr(self, name).copy() for name in _ARRAYS},
             "generators": [[g.bit_generator.state for g in gens] for gens in self.streams.gens],
-            "served_k": self._served_k,
+            # an int while the worlds agree (always with one group), else one per world
+            "served_k": (
+                int(self._served_k[0])
+                if np.all(self._served_k == self._served_k[0])
+                else self._served_k.tolist()
+            ),
             "world_tag": self.world_tag.copy(),
             "world_scenarios": (
                 [to_dict(c) for c in self.streams.cfgs]
@@ -790,6 +873,9 @@ class TrafficCore:
                 else []
             ),
         }
+        if self._group_of is not None:  # with draw groups only: a core without is as it was
+            state["group_slots"] = self._group_slots.tolist()
+        return state
 
     def load_state_dict(self, saved: dict[str, Any]) -> None:
         """Restore a `state_dict` of a core with the same config and batch size."""
@@ -837,7 +923,8 @@ class TrafficCore:
         for gens, states in zip(self.streams.gens, saved["generators"], strict=True):
             for g, s in zip(gens, states, strict=True):
                 g.bit_generator.state = s
-        self._served_k = int(saved["served_k"])
+        self._served_k[:] = np.asarray(saved["served_k"], dtype=np.int64)
+        self._group_slots[:] = saved.get("group_slots") or self.n_slots
         self.world_tag[:] = saved.get("world_tag", -1)
         for b, world in enumerate(saved.get("world_scenarios", [])):
             self._set_world_scenario(b, from_dict(ScenarioConfig, world))

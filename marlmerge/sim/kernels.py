@@ -580,22 +580,24 @@ def remove_ego_world(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel
-def next_ego(S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray, noise_need: int) -> int:
+def next_ego(
+    S: tuple, X: tuple, p: np.ndarray, mask: np.ndarray, noise_need: np.ndarray, check: bool
+) -> int:
     """`next_ego_world` for the worlds of `mask`, if each has a drawn departure, room for two
-    more vehicles and at least `noise_need` drawn measurement errors; otherwise nothing, the
+    more vehicles and at least `noise_need[b]` drawn measurement errors; otherwise nothing, the
     worlds short of them flagged `WI_NEED`, and -1 (the Python side draws ahead for them, then
-    calls again with `noise_need` < 0: no checks). Returns the worlds that overflowed."""
+    calls again with `check` false: no checks). Returns the worlds that overflowed."""
     vf, vi, wf, wi, lanes, sched = S
     n_slots = vi.shape[2]
     short = False
     for b in range(vf.shape[0]):
         if (
-            noise_need >= 0
+            check
             and mask[b]
             and (
                 wi[b, WI_COUNT_EGO] < 1
                 or wi[b, WI_N_ACTIVE] + 2 >= n_slots
-                or wi[b, WI_NOISE_COUNT] < noise_need
+                or wi[b, WI_NOISE_COUNT] < noise_need[b]
             )
         ):
             wi[b, WI_NEED] = 1

@@ -10,7 +10,10 @@ departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and th
 parameters) into the world's `sched` ring, measurement errors in chunks of `CHUNK` measurements
 into its noise ring, which the kernels consume; the stream of numbers a world sees is therefore
 fixed by its seed alone, whatever the batch it runs in, the action repeat, or when the chunks
-happen to be drawn.
+happen to be drawn. One exception: a reset without a seed (a new road mid-run, as `[sample]`'s
+`resample_every_egos` makes) throws away what its world had drawn ahead, and it draws ahead
+in every world of its draw group (`marlmerge.sim.core.draw_groups`), so with such resets a
+world's later numbers depend on its group's other worlds; never on another group's.
 
 Seeds: `seed=s` for a batch of B worlds gives world i the sequence `SeedSequence(s,
 spawn_key=(i,))`; an explicit per-world seed s_i gives `SeedSequence(s_i, spawn_key=(0,))`, the

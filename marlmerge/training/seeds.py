@@ -115,7 +115,9 @@ def make_seed_env(
     cfg: TrainConfig, seeds: list[int], levels: list[LevelReplay] | None = None
 ) -> BatchedMergeEnv:
     """S x B worlds; world i of seed s seeded as world i of a single run with `seed = s`;
-    with `[levels]`, world i of seed s draws its roads from seed s's replay (`levels`)."""
+    with `[levels]`, world i of seed s draws its roads from seed s's replay (`levels`). Each
+    seed's worlds are one draw group (`marlmerge.sim.core.draw_groups`): they run bit for bit
+    as the single run's env, whatever the other seeds' worlds do."""
     b = cfg.num_worlds
     world_seeds = [np.random.SeedSequence(s, spawn_key=(i,)) for s in seeds for i in range(b)]
     source = None if levels is None else SeedLevels(levels, b)
@@ -124,6 +126,7 @@ def make_seed_env(
         num_worlds=len(seeds) * b,
         seed=world_seeds,
         scenario_source=source,  # type: ignore[arg-type]
+        world_groups=np.repeat(np.arange(len(seeds)), b),
     )
 
 

@@ -67,12 +67,14 @@ class BatchedMergeEnv(EnvBase):
         scenarios: Sequence[ScenarioConfig] | None = None,
         scenario_source: ScenarioSource | None = None,
         proposal: Proposal | None = None,
+        world_groups: Sequence[int] | np.ndarray | None = None,
     ):
         """seed: one int for the batch, or one per world (`marlmerge.sim.streams`); scenarios:
         one per world, the traffic and road it runs; scenario_source: chooses each new road's
         traffic in place of `[sample]`'s draw, and the root key `"scenario_tag"` [B, 1] int64
         reports the tag of its choice; proposal: importance sampling of the traffic
-        (`TrafficCore`)."""
+        (`TrafficCore`); world_groups: [B] a group per world, each group running as an env of
+        its worlds alone (`marlmerge.sim.core.draw_groups`)."""
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.cfg = resolve_config(config, **(overrides or {}))
         require_ego(self.cfg, type(self).__name__)
@@ -84,6 +86,7 @@ class BatchedMergeEnv(EnvBase):
             scenarios=scenarios,
             scenario_source=scenario_source,
             proposal=proposal,
+            world_groups=world_groups,
         )
         self.recorder: Callable[[Rollout], None] | None = None
         """Called with every env step's `Rollout` (evaluation records trajectories from its
