@@ -24,6 +24,7 @@ in order:
     python benchmarks/regenerate.py --dry-run                 # the plan and its time
     python benchmarks/regenerate.py --jobs 2                  # everything (hours)
     python benchmarks/regenerate.py --only "paper_*" --only report_grid   # these and their needs
+    python benchmarks/regenerate.py --from hardened   # it, what reads it, and their needs
 
 The last line printed is JSON: `run`, `skipped`, `failed`, `not_run` (step names), `wall_s`.
 """
@@ -42,6 +43,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -117,18 +119,33 @@ def load_manifest(path: Path = MANIFEST) -> list[Step]:
     return steps
 
 
-def select(steps: list[Step], patterns: list[str]) -> list[Step]:
-    """The steps matching any pattern (fnmatch on the name) and everything they need, in the
-    manifest's order; all steps without patterns. A pattern that matches nothing is an error."""
-    if not patterns:
-        return steps
-    by_name = {s.name: s for s in steps}
-    wanted: set[str] = set()
+def _matching(steps: list[Step], patterns: list[str], option: str) -> set[str]:
+    """The names of the steps matching any pattern (fnmatch); one that matches none is an error."""
+    names: set[str] = set()
     for pat in patterns:
         hits = [s.name for s in steps if fnmatch.fnmatchcase(s.name, pat)]
         if not hits:
-            raise ValueError(f"--only {pat!r}: no step of the manifest matches")
-        wanted.update(hits)
+            raise ValueError(f"{option} {pat!r}: no step of the manifest matches")
+        names.update(hits)
+    return names
+
+
+def select(steps: list[Step], patterns: list[str], since: Sequence[str] = ()) -> list[Step]:
+    """The steps matching any pattern of `patterns` (`--only`), those matching `since`
+    (`--from`) and every step that reads them, directly or not, then everything all of these
+    need, in the manifest's order; all steps without patterns. A pattern that matches nothing
+    is an error."""
+    if not patterns and not since:
+        return steps
+    by_name = {s.name: s for s in steps}
+    wanted = _matching(steps, patterns, "--only")
+    changed = _matching(steps, list(since), "--from")
+    grew = True
+    while grew:  # every step that reads a changed one, directly or not
+        readers = {s.name for s in steps if changed.intersection(s.needs)} - changed
+        changed |= readers
+        grew = bool(readers)
+    wanted |= changed
     todo = list(wanted)
     while todo:
         for need in by_name[todo.pop()].needs:
@@ -348,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="the round's folder: done markers, logs, times")  # fmt: skip
     ap.add_argument("--only", action="append", default=[], metavar="GLOB",
                     help="steps by name (fnmatch) and what they need; repeatable")  # fmt: skip
+    ap.add_argument("--from", dest="since", action="append", default=[], metavar="GLOB",
+                    help="steps by name, every step that reads them and what those need; "
+                    "repeatable (remake what a change invalidates)")  # fmt: skip
     ap.add_argument("--jobs", type=int, default=1, help="cores to fill (1 or 2 on this machine)")
     ap.add_argument("--force", action="store_true", help="rerun the selected steps even if done")
     ap.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
@@ -356,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.jobs < 1:
         raise SystemExit(f"--jobs must be at least 1, got {args.jobs}")
-    steps = select(load_manifest(args.manifest), args.only)
+    steps = select(load_manifest(args.manifest), args.only, args.since)
     if args.check:
         problems = [p for s in steps for p in check_step(s)]
         print("\n".join(problems) or f"{len(steps)} steps: every command checks")

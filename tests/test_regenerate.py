@@ -198,3 +198,20 @@ def test_a_round_stays_on_the_machine_it_started_on(tmp_path):
     with pytest.raises(SystemExit, match="compiled_isa: 'avx512' then, 'avx2' here"):
         rnd.check_machine({**here, "compiled_isa": "avx2"})
     assert set(rg.machine()) >= {"cpu", "compiled_isa", "torch_cpu_capability", "torch"}
+
+
+def test_from_selects_the_steps_that_read_a_changed_one_and_what_they_need(tmp_path):
+    steps = rg.load_manifest(
+        write(
+            tmp_path,
+            step("a", "true")
+            + step("b", "true")
+            + step("c", "true", needs=["a", "b"])
+            + step("d", "true", needs=["c"])
+            + step("e", "true", needs=["b"]),
+        )
+    )
+    assert [s.name for s in rg.select(steps, [], ["a"])] == ["a", "b", "c", "d"]
+    assert [s.name for s in rg.select(steps, ["e"], ["a"])] == ["a", "b", "c", "d", "e"]
+    with pytest.raises(ValueError, match="--from 'zz'"):
+        rg.select(steps, [], ["zz"])
