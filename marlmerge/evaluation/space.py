@@ -90,6 +90,10 @@ verdicts as a cost (`TrainConfig.shield_penalty`) or as a teacher (`shield_imita
 the tenth set had judged the recipe trained behind the shield. Both failed on their validation
 roads first; it judged the hardened recipe's checkpoint chosen on the stress space's roads
 (`select.scenario`) instead (docs/stress.md)."""
+HELDOUT12_SEED = 20261217
+"""The seed the twelfth held-out set (`envs/heldout12_*`) was drawn with: committed before
+anyone ran a policy on it, for the round that trains the hardened recipe with a risk-averse
+(expectile) TD loss (`TrainConfig.td_expectile`)."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -100,6 +104,7 @@ HELDOUT_SETS = {
     "heldout9": HELDOUT9_SEED,
     "heldout10": HELDOUT10_SEED,
     "heldout11": HELDOUT11_SEED,
+    "heldout12": HELDOUT12_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
