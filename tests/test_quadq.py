@@ -453,6 +453,43 @@ def test_the_imitation_term_matches_autograd_of_its_loss_and_adam():
     assert ((after - taught) * overruled).abs().sum() < gap_before
 
 
+@pytest.mark.parametrize("tau", [0.25, 0.8])
+def test_the_expectile_loss_matches_autograd_of_its_loss_and_adam(tau):
+    """Each squared TD error weighs 2 tau where Q(s, a) is below its target and 2 (1 - tau)
+    where above (`td_weights`): the hand-written update against autograd and Adam."""
+    k = 4
+    g = _gen(31)
+    rep = _filled_replay(500, g)
+    rows = rep.sample((k, 32), g)
+    fast_loss, ref_loss = (qq.QuadraticQLoss(_net(hidden=64), gamma=0.95) for _ in range(2))
+    fast = qq.FastQuadQUpdater(
+        fast_loss, rep, generator=_gen(32), updates_per_call=k, target_update_period=100 * k,
+        expectile=tau,
+    )  # fmt: skip
+    opt = torch.optim.Adam(ref_loss.parameters(), lr=1e-3)
+    losses, signs = [], set()
+    for i in range(k):
+        td = rep.to_tensordict(rows[i])
+        a, b, c = ref_loss.value_network(td["observation"])
+        pred = (a * (b - td["action"]).pow(2)).sum(-1) + c.squeeze(-1)  # [B]
+        with torch.no_grad():
+            target = ref_loss.td_target(td).squeeze(-1)  # [B]
+        delta = pred - target
+        weight = torch.where(delta.detach() > 0, 2.0 * (1.0 - tau), 2.0 * tau)
+        signs |= set((delta > 0).tolist())
+        loss = (weight * delta * delta).mean()
+        losses.append(loss.detach())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert signs == {True, False}  # both weights were used
+    torch.testing.assert_close(fast.step(rows), torch.stack(losses), rtol=1e-5, atol=1e-6)
+    for (name, p_fast), p_ref in zip(
+        fast_loss.value_network.named_parameters(), ref_loss.parameters(), strict=True
+    ):
+        torch.testing.assert_close(p_fast, p_ref, rtol=1e-5, atol=1e-6, msg=name)
+
+
 def test_an_imitation_weight_must_be_positive():
     g = _gen(23)
     fast = qq.FastQuadQUpdater(
@@ -460,3 +497,18 @@ def test_an_imitation_weight_must_be_positive():
     )
     with pytest.raises(ValueError, match="imitation weight must be > 0, got 0.0"):
         fast.imitate(_teacher, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"td_expectile": 0.0}, r"td_expectile must be in \[0.05, 0.95\], got 0.0"),
+        ({"td_expectile": 0.3, "algorithm": "td3"}, r"td_expectile = 0.3 .* got 'td3' on"),
+        ({"td_expectile": 0.3, "update_path": "torchrl"}, r"got 'quadq' on 'torchrl'"),
+    ],
+)
+def test_bad_expectile_settings_are_named(values, message):
+    from marlmerge.config.training import TrainConfig
+
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**values)

@@ -66,6 +66,14 @@ def test_the_fused_imitation_term_is_each_seeds_own_bit_for_bit_eager():
     assert _chunks_agree(single, fused, 3, guided=True)
 
 
+def test_the_fused_expectile_loss_is_each_seeds_own_bit_for_bit_eager():
+    spec = dataclasses.replace(SPEC, expectile=0.25)
+    single, fused = (functools.partial(f, spec) for f in (fast_chunk, fused_chunk))
+    assert _chunks_agree(single, fused, 3)
+    plain = functools.partial(fast_chunk, SPEC)  # and the weights change the update
+    assert not _chunks_agree(plain, fused, 1, chunks=1)
+
+
 @pytest.mark.slow
 def test_fused_update_is_each_seeds_own_update_bit_for_bit_compiled():
     compile_ = functools.partial(torch.compile, fullgraph=True, dynamic=False)

@@ -231,6 +231,13 @@ class TrainConfig(RunConfig):
     state, and where it would overrule it, the loss gains `shield_imitation` x (B(s) - the
     shield's command)^2 (`FastQuadQUpdater.imitate`). `evaluation.json` measures the policy
     bare. Needs a `shield`; quadq on the fast or compiled path."""
+    td_expectile: float = num(0.5, 0.05, 0.95)
+    """tau of the quadratic Q's TD loss: each squared TD error weighs 2 tau where the target
+    is above Q(s, a) and 2 (1 - tau) where it is below (expectile regression). Below 0.5, Q
+    fits a low expectile of the return, so outcomes worse than expected (a collision after a
+    gap that usually holds) weigh more: a risk-averse critic, and B(s) moves away from the
+    commands whose returns spread downwards. 0.5: the paper's squared error. quadq on the
+    fast or compiled path."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -268,6 +275,13 @@ class TrainConfig(RunConfig):
                     or (self.algorithm == "quadq" and self.update_path != "torchrl"),
                     f"shield_imitation = {self.shield_imitation} trains the quadratic Q's fast "
                     f"path: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
+                    f"{self.algorithm!r} on {self.update_path!r}",
+                ),
+                (
+                    self.td_expectile == 0.5
+                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
+                    f"td_expectile = {self.td_expectile} weighs the quadratic Q's fast-path "
+                    "loss: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
                     f"{self.algorithm!r} on {self.update_path!r}",
                 ),
                 (

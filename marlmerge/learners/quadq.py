@@ -612,6 +612,8 @@ class FastSpec:
     """(low, span) of each action component after the first (`QuadraticQNet.extra_bounds`)."""
     imitation: float = 0.0
     """Weight of the imitation term (`FastQuadQUpdater.imitate`); 0: none, the paper's loss."""
+    expectile: float = 0.5
+    """tau of the TD loss's expectile (`td_weights`); 0.5: the paper's squared error."""
 
     @property
     def action_dim(self) -> int:
@@ -656,6 +658,16 @@ def flat_greedy(spec: FastSpec, flat: Tensor, obs: Tensor) -> Tensor:
     return low + span * torch.sigmoid(z_b)
 
 
+def td_weights(spec: FastSpec, delta: Tensor) -> Tensor | None:
+    """The expectile loss's weight per TD error delta = Q(s, a) - y [...]: 2 (1 - tau) where
+    Q is above its target, 2 tau where below (tau = `spec.expectile`). Below 0.5 the fit
+    follows the worse outcomes more (Q is a low expectile of the return: risk averse). None
+    at 0.5, where every weight is 1: the paper's squared error, untouched."""
+    if spec.expectile == 0.5:
+        return None
+    return torch.where(delta > 0, 2.0 * (1.0 - spec.expectile), 2.0 * spec.expectile)
+
+
 def fast_chunk(
     spec: FastSpec,
     flat: Tensor,
@@ -672,7 +684,8 @@ def fast_chunk(
     With ``guide`` [k, B, 2m] (a teacher's command t and a 0/1 weight w per row and component,
     `FastQuadQUpdater.imitate`), each update's loss also has `spec.imitation` x mean over the
     rows of sum_j w (B_j(s) - t_j)^2, which pulls B(s) towards the teacher where w is 1; the
-    losses returned stay the TD losses.
+    losses returned stay the TD losses. With `spec.expectile` != 0.5 each row's squared TD
+    error is weighted by `td_weights`.
 
     ``flat``/``exp_avg``/``exp_avg_sq`` [P] are updated in place; ``target_flat`` [P] is read
     only (the target is fixed within a chunk, so all k targets come from one matmul).
@@ -713,9 +726,11 @@ def fast_chunk(
         diff = low + span * s_b - a  # B(s) - a, [B, m]
         q = (big_a * diff * diff).sum(-1) + z[:, c]  # [B]
         delta = q - y[i]
-        losses.append((delta * delta).mean())
-        # Backward of mean(delta^2) by hand.
-        g = (delta * (2.0 / bsz)).unsqueeze(-1)  # dL/dq [B, 1]
+        w = td_weights(spec, delta)  # the expectile's weights [B], None: all 1
+        wd = delta if w is None else w * delta
+        losses.append((wd * delta).mean())
+        # Backward of mean(w delta^2) by hand (w is piecewise constant in delta).
+        g = (wd * (2.0 / bsz)).unsqueeze(-1)  # dL/dq [B, 1]
         dz_b = g * 2.0 * big_a * diff * span * s_b * (1.0 - s_b)  # [B, m]
         if guide is not None:  # d/dz_b of imitation x mean(sum(w (B(s) - t)^2))
             miss = guide[i, :, m:] * (diff + a - guide[i, :, :m])  # w (B(s) - t), [B, m]
@@ -790,6 +805,8 @@ class FastQuadQUpdater:
         target_update_period: p, hard copy online -> target every p updates (paper: 500).
         compile: wrap the chunk in ``torch.compile(fullgraph=True, dynamic=False)``.
         generator: RNG for sampling minibatch indices (required: no global RNG).
+        expectile: tau of the TD loss (`td_weights`); 0.5: the squared error of
+            :class:`QuadraticQLoss`.
     """
 
     def __init__(
@@ -806,6 +823,7 @@ class FastQuadQUpdater:
         target_update_period: int = 500,
         compile: bool = False,
         compile_kwargs: dict | None = None,
+        expectile: float = 0.5,
     ) -> None:
         net = loss.value_network
         if not isinstance(net, QuadraticQNet):
@@ -836,6 +854,7 @@ class FastQuadQUpdater:
             beta2=self.betas[1],
             eps=float(eps),
             extra=tuple((lo, hi - lo) for lo, hi in net.extra_bounds),
+            expectile=float(expectile),
         )
         # This object owns the target updates: silence torchrl's "no updater" warning.
         loss._has_update_associated["value_network"] = True

@@ -37,6 +37,7 @@ from marlmerge.learners.quadq import (
     FastQuadQUpdater,
     FastSpec,
     notice_if_slow,
+    td_weights,
     unflatten,
 )
 
@@ -85,7 +86,8 @@ def fused_chunk(
         # the loss per seed, recomputed from its own slices: sharing `delta` with the
         # gradients would change how the compiler fuses (and rounds) them
         losses.append(torch.stack([_seed_loss(spec, big_a, diff, z, y, i, j) for j in range(s_)]))
-        g = delta * (2.0 / bsz)
+        w = td_weights(spec, delta)  # [S, B], None: all 1 (the paper's loss)
+        g = (delta if w is None else w * delta) * (2.0 / bsz)
         dz_b = g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b)  # [S, B]
         if guide is not None:  # the imitation term, as `fast_chunk` has it
             miss = guide[:, i, :, 1] * (diff + a - guide[:, i, :, 0])  # w (B(s) - t), [S, B]
@@ -112,7 +114,8 @@ def _seed_loss(
 ) -> Tensor:
     """Seed j's TD loss of update i, as `fast_chunk` computes it (a scalar)."""
     delta = big_a[j] * diff[j] * diff[j] + z[j, :, HEAD_C] - y[j, i]  # [B]
-    return (delta * delta).mean()
+    w = td_weights(spec, delta)
+    return (delta * delta).mean() if w is None else (w * delta * delta).mean()
 
 
 class FusedQuadQUpdates:

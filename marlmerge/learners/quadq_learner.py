@@ -42,6 +42,8 @@ class QuadQLearner(Learner):
         init_weights: start from these network weights (a trained policy's `net`) instead.
         device: where the networks and the optimiser state live (initialised on the CPU,
             then moved, so every device starts from the same weights).
+        expectile: tau of the TD loss (`marlmerge.learners.quadq.td_weights`; fast paths only);
+            0.5: the paper's squared error.
     """
 
     algorithm = "quadq"
@@ -64,7 +66,13 @@ class QuadQLearner(Learner):
         init_weights: Mapping[str, Tensor] | None = None,
         device: torch.device | str = "cpu",
         extra_bounds: tuple[tuple[float, float], ...] = (),
+        expectile: float = 0.5,
     ) -> None:
+        if expectile != 0.5 and update_path == "torchrl":
+            raise ValueError(
+                f"expectile = {expectile} trains the fast path's loss: update_path 'fast' or "
+                "'compiled', not 'torchrl'"
+            )
         init = torch.Generator().manual_seed(seed)
         self.obs_dim, self.hidden = obs_dim, hidden
         self.device = torch.device(device)
@@ -81,6 +89,7 @@ class QuadQLearner(Learner):
         self._settings = dict(
             lr=lr, target_update_period=target_update_period, updates_per_call=updates_per_call
         )
+        self.expectile = float(expectile)
         self.sample_generator = sample_generator
         self._imitation: tuple[Teacher, float] | None = None
         self._build_updater()
@@ -113,6 +122,7 @@ class QuadQLearner(Learner):
             updates_per_call=s["updates_per_call"],
             target_update_period=s["target_update_period"],
             compile=self.update_path == "compiled",
+            expectile=self.expectile,
         )
         if self._imitation is not None:
             self.fast.imitate(*self._imitation)

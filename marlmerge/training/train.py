@@ -139,6 +139,7 @@ def make_learner(
         seed=cfg.seed,
         sample_generator=sample_gen,
         device=cfg.device,
+        expectile=cfg.td_expectile,
     )
 
 
