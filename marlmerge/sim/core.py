@@ -615,12 +615,17 @@ class TrafficCore:
         b, n_agents = self.batch_size, roster.n_agents  # ego_cmd [B, 2], roster_cmd [B, K, 2]
         if roster.rows.shape != (L.RO_ROWS, b, n_agents):
             raise ValueError(f"roster of shape {roster.rows.shape} does not fit {b} worlds")
-        active = self._group_rows(
-            self._all_rows if step_mask is None else np.flatnonzero(step_mask)
-        )  # the worlds of the groups that step
-        stale = active[self._served_k[active] != k]  # whole groups: drawn ahead for another k
-        if stale.size:
-            self._serve(k, stale)
+        if self._group_of is None:  # one group: every world was drawn ahead for the same k
+            active = self._all_rows
+            if self._served_k[0] != k:
+                self._serve(k)
+        else:  # the worlds of the groups that step; whole groups drawn ahead for another k
+            active = self._group_rows(
+                self._all_rows if step_mask is None else np.flatnonzero(step_mask)
+            )
+            stale = active[self._served_k[active] != k]
+            if stale.size:
+                self._serve(k, stale)
         mask_before = roster.rows[L.RO_MASK].copy() if n_agents else None
         ego_terms = np.empty((b, len(EGO_TERMS)))
         hw_terms = np.empty((b, n_agents, len(LEARNED_HIGHWAY_TERMS)))
