@@ -5,12 +5,14 @@
 
 Prints, in Markdown, one table per condition set (the grid's 12 cells and each held-out set
 the grids ran: `heldout`, `heldout2`, ...) and one over all of them: per policy, success,
-collisions with their Wilson 95 % interval, the worst condition pooled over seeds, the worst
-seed in any condition, time to merge and max jerk. Then the targets of issue "hardening": the
-hardened ego unshielded (<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no
-seed below 98 % in any condition, merge time <= gap acceptance's, max jerk <= the paper
-recipe's; not judged where the grids have no `gap` or `paper` policy) on every set, and behind
-the shield (`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes.
+collisions with their Wilson 95 % interval, the lowest and highest of the seeds' collision
+rates (the interval counts roads; two draws of a recipe's seeds differ by more,
+docs/stress.md), the worst condition pooled over seeds, the worst seed in any condition, time
+to merge and max jerk. Then the targets of issue "hardening": the hardened ego unshielded
+(<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no seed below 98 % in any
+condition, merge time <= gap acceptance's, max jerk <= the paper recipe's; not judged where
+the grids have no `gap` or `paper` policy) on every set, and behind the shield
+(`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes.
 """
 
 from __future__ import annotations
@@ -52,9 +54,9 @@ def restrict(d: dict[str, np.ndarray], name: str | None) -> dict[str, np.ndarray
 
 def table(g: dict[str, dict[str, np.ndarray]], name: str | None) -> list[str]:
     out = [
-        "| policy | episodes | success | collisions [95 %] | worst condition | worst seed in a "
-        "condition | time to merge | max jerk |",
-        "|---|---|---|---|---|---|---|---|",
+        "| policy | episodes | success | collisions [95 %] | seeds' collisions | worst condition | "
+        "worst seed in a condition | time to merge | max jerk |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for policy, full in g.items():
         d = restrict(full, name)
@@ -68,10 +70,20 @@ def table(g: dict[str, dict[str, np.ndarray]], name: str | None) -> list[str]:
             f"{w.run.rsplit('_', 1)[-1]}: {100 * w.run_success:.1f} %")  # fmt: skip
         out.append(
             f"| {policy} | {n:,} | {pct(d['success'])} | {100 * k / n:.2f} % "
-            f"[{100 * lo:.2f}, {100 * hi:.2f}] ({int(k)}) | {w.cond} {100 * w.success:.1f} % | "
-            f"{seed} | {merge_time(d):.1f} s | {np.nanmean(d['max_abs_jerk_mps3']):.1f} m/s³ |"
+            f"[{100 * lo:.2f}, {100 * hi:.2f}] ({int(k)}) | {seed_spread(d)} | "
+            f"{w.cond} {100 * w.success:.1f} % | {seed} | {merge_time(d):.1f} s | "
+            f"{np.nanmean(d['max_abs_jerk_mps3']):.1f} m/s³ |"
         )
     return out
+
+
+def seed_spread(d: dict[str, np.ndarray]) -> str:
+    """The lowest and highest collision rate of a policy's training runs (one run: "-")."""
+    runs = np.unique(d["run"])
+    if len(runs) == 1:
+        return "-"
+    rates = [100 * d["collision"][d["run"] == r].mean() for r in runs]
+    return f"{min(rates):.2f}-{max(rates):.2f} %"
 
 
 def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
