@@ -21,7 +21,7 @@ import argparse
 import re
 
 import numpy as np
-from robustness_tables import load, merge_time, pct, worst
+from robustness_tables import load, merge_time, pct, subset, worst
 
 from marlmerge.evaluation.metrics import wilson_interval
 
@@ -46,10 +46,10 @@ def title(name: str) -> str:
 
 
 def restrict(d: dict[str, np.ndarray], name: str | None) -> dict[str, np.ndarray]:
+    """`d` restricted to one condition set (None: all of it)."""
     if name is None:
         return d
-    keep = np.array([set_of(c) == name for c in d["condition"]])
-    return {k: v[keep] for k, v in d.items()}
+    return subset(d, np.array([set_of(c) == name for c in d["condition"]]))
 
 
 def table(g: dict[str, dict[str, np.ndarray]], name: str | None) -> list[str]:
