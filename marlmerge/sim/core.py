@@ -615,17 +615,7 @@ class TrafficCore:
         b, n_agents = self.batch_size, roster.n_agents  # ego_cmd [B, 2], roster_cmd [B, K, 2]
         if roster.rows.shape != (L.RO_ROWS, b, n_agents):
             raise ValueError(f"roster of shape {roster.rows.shape} does not fit {b} worlds")
-        if self._group_of is None:  # one group: every world was drawn ahead for the same k
-            active = self._all_rows
-            if self._served_k[0] != k:
-                self._serve(k)
-        else:  # the worlds of the groups that step; whole groups drawn ahead for another k
-            active = self._group_rows(
-                self._all_rows if step_mask is None else np.flatnonzero(step_mask)
-            )
-            stale = active[self._served_k[active] != k]
-            if stale.size:
-                self._serve(k, stale)
+        active = self._ready_for(k, step_mask)
         mask_before = roster.rows[L.RO_MASK].copy() if n_agents else None
         ego_terms = np.empty((b, len(EGO_TERMS)))
         hw_terms = np.empty((b, n_agents, len(LEARNED_HIGHWAY_TERMS)))
@@ -663,6 +653,21 @@ class TrafficCore:
             ego_rear=call[L.WI_EGO_REAR - L.WI_STEP_OUTCOME] != 0,
             filter_interventions=self._interventions(),
         )
+
+    def _ready_for(self, k: int, step_mask: np.ndarray | None) -> np.ndarray:
+        """Before a call of `k` steps: draw ahead where the worlds were drawn ahead for another
+        step count (after a reset, or a call of another k). Returns the worlds of the groups
+        that step (all of them with one group), whose needs the call then serves."""
+        if self._group_of is None:  # one group: every world was drawn ahead for the same k
+            if self._served_k[0] != k:
+                self._serve(k)
+            return self._all_rows
+        stepping = self._all_rows if step_mask is None else np.flatnonzero(step_mask)
+        active = self._group_rows(stepping)
+        stale = active[self._served_k[active] != k]  # whole groups
+        if stale.size:
+            self._serve(k, stale)
+        return active
 
     def _serve_needs(self, k: int, active: np.ndarray) -> None:
         """After a call of `k` steps: draw ahead and make room where the kernels flagged a need
