@@ -307,8 +307,7 @@ class TrafficCore:
         never runs short, in the worlds `rows` (indices; all if None)."""
         rows = np.arange(self.batch_size) if rows is None else rows
         if rows.size:
-            per_step = 3 if self.cfg.ramp.flowing else 2  # arrivals a step at most
-            self._reserve_slots(rows, self.wi[rows, L.WI_N_ACTIVE] + per_step * k + 3)
+            self._reserve_slots(rows, self._slots_needed(rows, k))
         dt = self.cfg.sim.dt_s
         for b in rows.tolist():
             horizon = self.wf[b, L.WF_T] + (k + 1) * dt
@@ -334,6 +333,13 @@ class TrafficCore:
             self._top_up_noise(b, k + 2)
             self.wi[b, L.WI_NEED] = 0
         self._served_k[self._group_rows(rows)] = k
+
+    def _slots_needed(self, rows: np.ndarray | slice, k: int) -> np.ndarray:
+        """Slots the worlds `rows` need before a call of `k` steps: their vehicles, the most
+        arrivals k steps bring (two a step, three with ramp flow) and one `next_ego` (the
+        kernels' `_short` asks the same)."""
+        per_step = 3 if self.cfg.ramp.flowing else 2
+        return self.wi[rows, L.WI_N_ACTIVE] + per_step * k + 3
 
     def _group_rows(self, rows: np.ndarray) -> np.ndarray:
         """The worlds of every group that holds one of `rows` (all worlds with one group)."""
@@ -662,8 +668,10 @@ class TrafficCore:
             if self._served_k[0] != k:
                 self._serve(k)
             return self._all_rows
-        stepping = self._all_rows if step_mask is None else np.flatnonzero(step_mask)
-        active = self._group_rows(stepping)
+        if step_mask is None:  # every group steps
+            active = self._all_rows
+        else:
+            active = self._group_rows(np.flatnonzero(step_mask))
         stale = active[self._served_k[active] != k]  # whole groups
         if stale.size:
             self._serve(k, stale)
@@ -676,9 +684,7 @@ class TrafficCore:
         against its group's count (`_reserve_slots`), not the arrays' (`draw_groups`)."""
         need = self.wi[:, L.WI_NEED] != 0
         if self._group_of is not None:
-            per_step = 3 if self.cfg.ramp.flowing else 2
-            cap = self._group_slots[self._group_of]  # [B]
-            need |= self.wi[:, L.WI_N_ACTIVE] + per_step * k + 3 > cap
+            need |= self._slots_needed(slice(None), k) > self._group_slots[self._group_of]
             idle = np.ones(self.batch_size, dtype=bool)
             idle[active] = False
             need &= ~idle
