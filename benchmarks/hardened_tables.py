@@ -12,7 +12,9 @@ to merge and max jerk. Then the targets of issue "hardening": the hardened ego u
 (<= 0.1 % collisions, >= 99.5 % success, no condition below 99 %, no seed below 98 % in any
 condition, merge time <= gap acceptance's, max jerk <= the paper recipe's; not judged where
 the grids have no `gap` or `paper` policy) on every set, and behind the shield
-(`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes.
+(`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes. Last, the
+roads by how many of the policy's seeds collide there, against the count expected if the
+seeds collided independently, and what gap acceptance did on them.
 """
 
 from __future__ import annotations
@@ -128,6 +130,42 @@ def targets(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
     return out
 
 
+def roads(d: dict[str, np.ndarray]) -> np.ndarray:
+    """Each episode's road, "condition#episode": the grids drive every policy on the same ones."""
+    return np.char.add(np.char.add(d["condition"].astype(str), "#"), d["episode"].astype(str))
+
+
+def exactly(rates: list[float]) -> np.ndarray:
+    """P(exactly c of independent events with these probabilities), c = 0..len(rates)."""
+    p = np.array([1.0])
+    for r in rates:
+        p = np.concatenate([p * (1 - r), [0.0]]) + np.concatenate([[0.0], p * r])
+    return p
+
+
+def shared(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
+    """Roads by how many of `policy`'s seeds collide there, against the count expected if the
+    seeds' collisions were independent, and what gap acceptance did on those roads."""
+    d, runs = g[policy], np.unique(g[policy]["run"])
+    keys, road = np.unique(roads(d), return_inverse=True)
+    if len(runs) < 2 or len(d["run"]) != len(runs) * len(keys):
+        return []  # one seed, or seeds that did not all drive every road once
+    seeds = np.bincount(road, weights=d["collision"], minlength=len(keys)).astype(int)
+    expected = len(keys) * exactly([d["collision"][d["run"] == r].mean() for r in runs])
+    gap = None
+    if "gap" in g:
+        outcome = 2 * g["gap"]["collision"] + g["gap"]["truncation"]  # 0 merged, 1 out of time
+        gap = dict(zip(roads(g["gap"]), outcome, strict=True))
+    out = ["| seeds colliding | roads | expected if independent | gap acceptance there: "
+           "merged / out of time / collided |", "|---|---|---|---|"]  # fmt: skip
+    for c in range(1, len(runs) + 1):
+        there = keys[seeds == c]
+        there_gap = "-" if gap is None else " / ".join(
+            str(sum(gap.get(k, -1) == o for k in there)) for o in (0, 1, 2))  # fmt: skip
+        out.append(f"| {c} of {len(runs)} | {len(there):,} | {expected[c]:.3g} | {there_gap} |")
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument(
@@ -151,6 +189,10 @@ def main() -> None:
                                   and "@" not in q)):  # fmt: skip
         print(f"\n### Targets: `{policy}`\n")
         print("\n".join(targets(g, policy)))
+        rows = shared(g, policy)
+        if rows:
+            print(f"\n### Roads by how many of `{policy}`'s seeds collide there\n")
+            print("\n".join(rows))
 
 
 if __name__ == "__main__":

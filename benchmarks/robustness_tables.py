@@ -42,13 +42,14 @@ BEST = "robust4@shield"
 
 
 def load(path: str) -> dict[str, dict[str, np.ndarray]]:
-    """policy -> column -> values [n] (run and condition as strings, the rest as floats)."""
+    """policy -> column -> values [n] (run, condition, episode as strings; the rest as floats)."""
     cols: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     with open(path, newline="") as fh:
         for r in csv.DictReader(fh):
             c = cols[r["policy"]]
             c["run"].append(run_name(r["run"]))
             c["condition"].append(r["condition"])
+            c["episode"].append(r["episode"])
             for k in ("success", "collision", "truncation", "time_to_merge_s", "max_abs_jerk_mps3"):
                 c[k].append(float(r[k]))
     return {p: {k: np.array(v) for k, v in c.items()} for p, c in cols.items()}
