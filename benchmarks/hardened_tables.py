@@ -14,7 +14,8 @@ condition, merge time <= gap acceptance's, max jerk <= the paper recipe's; not j
 the grids have no `gap` or `paper` policy) on every set, and behind the shield
 (`POLICY@shield` or `POLICY@shield-left`) 0 collisions in the held-out episodes. Last, the
 roads by how many of the policy's seeds collide there, against the count expected if the
-seeds collided independently, and what gap acceptance did on them.
+seeds collided independently (each at its own rate in each condition), and what gap
+acceptance did on them.
 """
 
 from __future__ import annotations
@@ -145,13 +146,18 @@ def exactly(rates: list[float]) -> np.ndarray:
 
 def shared(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
     """Roads by how many of `policy`'s seeds collide there, against the count expected if the
-    seeds' collisions were independent, and what gap acceptance did on those roads."""
+    seeds collided independently, each at its own rate in each condition (so hard conditions
+    alone do not count as shared), and what gap acceptance did on those roads."""
     d, runs = g[policy], np.unique(g[policy]["run"])
     keys, road = np.unique(roads(d), return_inverse=True)
     if len(runs) < 2 or len(d["run"]) != len(runs) * len(keys):
         return []  # one seed, or seeds that did not all drive every road once
     seeds = np.bincount(road, weights=d["collision"], minlength=len(keys)).astype(int)
-    expected = len(keys) * exactly([d["collision"][d["run"] == r].mean() for r in runs])
+    expected = np.zeros(len(runs) + 1)  # each condition's roads at each seed's rate there
+    for cond in np.unique(d["condition"]):
+        here = d["condition"] == cond
+        rates = [d["collision"][here & (d["run"] == r)].mean() for r in runs]
+        expected += here.sum() / len(runs) * exactly(rates)
     gap = None
     if "gap" in g:
         outcome = 2 * g["gap"]["collision"] + g["gap"]["truncation"]  # 0 merged, 1 out of time
