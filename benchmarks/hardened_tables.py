@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import re
+from collections import Counter
 
 import numpy as np
 from robustness_tables import load, merge_time, pct, subset, worst
@@ -169,7 +170,10 @@ def shared(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
         there_gap = "-" if gap is None else " / ".join(
             str(sum(gap.get(k, -1) == o for k in there)) for o in (0, 1, 2))  # fmt: skip
         out.append(f"| {c} of {len(runs)} | {len(there):,} | {expected[c]:.3g} | {there_gap} |")
-    return out
+    most = keys[2 * seeds > len(runs)]  # roads where most of the seeds collide
+    where = Counter(k.rsplit("#", 1)[0] for k in most).most_common()
+    listed = ", ".join(f"{cond} ({n})" for cond, n in where)
+    return [*out, "", f"Where most of the seeds collide, by condition: {listed or 'nowhere'}."]
 
 
 def main() -> None:

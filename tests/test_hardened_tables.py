@@ -57,6 +57,7 @@ def test_shared_counts_roads_by_seeds_colliding_and_what_gap_did_there():
     # seed a at 1/2, seed b at 1/4: exactly one of two 4 * (1/2 * 3/4 + 1/2 * 1/4) = 2, both 0.5
     assert rows[2] == "| 1 of 2 | 1 | 2 | 0 / 0 / 1 |"  # road 1: gap acceptance collided
     assert rows[3] == "| 2 of 2 | 1 | 0.5 | 1 / 0 / 0 |"  # road 0: gap acceptance merged
+    assert rows[-1] == "Where most of the seeds collide, by condition: c (1)."
 
 
 def test_shared_refuses_seeds_that_did_not_drive_every_road_once():
