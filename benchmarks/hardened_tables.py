@@ -149,9 +149,11 @@ def shared(g: dict[str, dict[str, np.ndarray]], policy: str) -> list[str]:
     """Roads by how many of `policy`'s seeds collide there, against the count expected if the
     seeds collided independently, each at its own rate in each condition (so hard conditions
     alone do not count as shared), and what gap acceptance did on those roads."""
-    d, runs = g[policy], np.unique(g[policy]["run"])
+    d = g[policy]
+    runs, run = np.unique(d["run"], return_inverse=True)
     keys, road = np.unique(roads(d), return_inverse=True)
-    if len(runs) < 2 or len(d["run"]) != len(runs) * len(keys):
+    pairs = np.unique(road * len(runs) + run)  # each (road, seed) driven
+    if len(runs) < 2 or not len(pairs) == len(d["run"]) == len(runs) * len(keys):
         return []  # one seed, or seeds that did not all drive every road once
     seeds = np.bincount(road, weights=d["collision"], minlength=len(keys)).astype(int)
     expected = np.zeros(len(runs) + 1)  # each condition's roads at each seed's rate there

@@ -65,3 +65,6 @@ def test_shared_refuses_seeds_that_did_not_drive_every_road_once():
     assert ht.shared(g, "p") == []
     one = {"p": _episodes(["a", "a"], ["c"] * 2, ["0", "1"], [1, 0])}
     assert ht.shared(one, "p") == []
+    # as many episodes as seeds x roads, but each seed drove one road twice
+    twice = {"p": _episodes(["a", "a", "b", "b"], ["c"] * 4, ["0", "0", "1", "1"], [1, 0, 1, 0])}
+    assert ht.shared(twice, "p") == []
