@@ -13,6 +13,7 @@ from marlmerge.config import ScenarioConfig
 from marlmerge.sim.observation import (
     EGO_EXTENDED_ACCEL_FEATURES,
     EGO_EXTENDED_FEATURES,
+    EGO_EXTENDED_JOIN_FEATURES,
     EGO_FEATURES,
     EGO_LAYOUTS,
     ego_features,
@@ -34,7 +35,12 @@ def _raw(obs: np.ndarray) -> dict[str, float]:
 
 
 def test_every_layout_begins_with_the_papers_state():
-    assert tuple(EGO_LAYOUTS) == ("paper", "extended", "extended_accel")
+    assert tuple(EGO_LAYOUTS) == ("paper", "extended", "extended_accel", "extended_join")
+    assert EGO_EXTENDED_JOIN_FEATURES[:17] == EGO_EXTENDED_ACCEL_FEATURES
+    assert [f.name for f in EGO_EXTENDED_JOIN_FEATURES[17:]] == [
+        "lead_gap_at_join",
+        "lag_gap_at_join",
+    ]
     assert EGO_EXTENDED_FEATURES[: len(EGO_FEATURES)] == EGO_FEATURES
     assert EGO_EXTENDED_ACCEL_FEATURES[:16] == EGO_EXTENDED_FEATURES
     assert EGO_EXTENDED_ACCEL_FEATURES[16].name == "ego_accel"
@@ -177,7 +183,7 @@ def test_the_documented_table_is_the_spec_table():
     page = (Path(__file__).resolve().parent.parent / "docs" / "sensing.md").read_text()
     rows = [line.split("|")[1:5] for line in page.splitlines() if line.startswith("| `")]
     table = {c[0].strip().strip("`"): tuple(x.strip() for x in c[1:]) for c in rows}
-    for f in EGO_EXTENDED_ACCEL_FEATURES:
+    for f in EGO_EXTENDED_JOIN_FEATURES:
         assert table.get(f.name) == (f.unit, f"{f.scale:g}", f.noise or "-"), f.name
 
 
@@ -188,3 +194,70 @@ def test_the_ego_sees_the_acceleration_it_applied():
         out = core.rollout(np.array([cmd]))
         assert out.ego_obs[0, 16] == np.float32(cmd / 5.0)
         assert np.array_equal(out.ego_obs[:, :16], core.observe()[0][:, :16])
+
+
+JOIN = {"ego.observation": "extended_join"}
+
+
+def _join_gaps(core) -> tuple[float, float]:
+    """The two `"extended_join"` columns in metres."""
+    obs = core.observe()[0][0]
+    assert obs.shape == (19,)
+    return float(obs[17]) * 100.0, float(obs[18]) * 100.0
+
+
+def test_gaps_at_join_extrapolate_the_gap_vehicles_to_the_join_point():
+    # ego at -60 m, 20 m/s; the gap-front 3 m ahead at 25 m/s, the gap-back 20 m behind at 22 m/s
+    core = scene(ego=(-60.0, 20.0), right=[(-57.0, 25.0), (-80.0, 22.0)], overrides=JOIN)
+    t = (core.cfg.x_overlap_m + 60.0) / 20.0
+    lead, lag = _join_gaps(core)
+    assert lead == pytest.approx(3.0 + 5.0 * t - L_M, abs=1e-4)
+    assert lag == pytest.approx(20.0 - 2.0 * t - L_M, abs=1e-4)
+    # the first 17 columns are those of "extended_accel"
+    accel = scene(
+        ego=(-60.0, 20.0),
+        right=[(-57.0, 25.0), (-80.0, 22.0)],
+        overrides={"ego.observation": "extended_accel"},
+    )
+    assert np.array_equal(core.observe()[0][:, :17], accel.observe()[0])
+
+
+def test_gaps_at_join_flag_an_overlap_and_missing_vehicles():
+    # a car 30 m behind closing at 10 m/s, 3 s from the join: it would be 0 m behind... overlap
+    core = scene(ego=(-110.0, 20.0), right=[(-140.0, 30.0)], overrides=JOIN)
+    t = (core.cfg.x_overlap_m + 110.0) / 20.0
+    lead, lag = _join_gaps(core)
+    assert lead == pytest.approx(RANGE_M)  # no gap-front vehicle
+    assert lag == pytest.approx(max(30.0 - 10.0 * t - L_M, -RANGE_M), abs=1e-4) and lag < 0.0
+    # past the join point the time is 0: the current bumper gaps
+    core = scene(ego=(10.0, 20.0), right=[(40.0, 20.0), (-10.0, 25.0)], overrides=JOIN)
+    assert _join_gaps(core) == pytest.approx((30.0 - L_M, 20.0 - L_M), abs=1e-4)
+
+
+def check_gaps_at_join(obs: np.ndarray, cfg: ScenarioConfig) -> int:
+    """Columns 17-18 of `"extended_join"` observations [..., 19] against the same rows' gap
+    vehicles (columns 0-5) and time to the join (column 14); returns the rows with both gap
+    vehicles present (a missing one reads +sensing range)."""
+    raw = obs.reshape(-1, obs.shape[-1]).astype(np.float64)
+    x, v = raw[:, 1] * 100.0, raw[:, 0] * 30.0
+    t = raw[:, 14] * 10.0
+    rng, length = cfg.ego.sensing_range_m, cfg.vehicle.length_m
+    lead = np.clip(raw[:, 3] * 100.0 - x + (raw[:, 2] * 30.0 - v) * t - length, -rng, rng)
+    lag = np.clip(x - raw[:, 5] * 100.0 + (v - raw[:, 4] * 30.0) * t - length, -rng, rng)
+    got_lead, got_lag = raw[:, 17] * 100.0, raw[:, 18] * 100.0
+    ok_lead = np.isclose(got_lead, lead, atol=2e-3) | np.isclose(got_lead, rng, atol=2e-3)
+    ok_lag = np.isclose(got_lag, lag, atol=2e-3) | np.isclose(got_lag, rng, atol=2e-3)
+    assert ok_lead.all() and ok_lag.all()
+    both = np.isclose(got_lead, lead, atol=2e-3) & np.isclose(got_lag, lag, atol=2e-3)
+    return int((both & (np.abs(lead) < rng - 1.0) & (np.abs(lag) < rng - 1.0)).sum())
+
+
+def test_gaps_at_join_follow_the_reported_gap_in_traffic():
+    env = BatchedMergeEnv(
+        num_worlds=8, seed=3, overrides={**JOIN, "traffic.flow_vph_per_lane": 1500}
+    )
+    check_env_specs(env, seed=3)
+    td = env.rollout(60, break_when_any_done=False)
+    obs = td["next", "observation"].numpy()
+    assert obs.shape == (8, 60, 19)
+    assert check_gaps_at_join(obs, env.core.cfg) >= 100

@@ -383,6 +383,24 @@ def test_ramp_agents_see_the_extended_layout_from_where_they_are():
     assert checked >= 10
 
 
+def test_ramp_agents_see_their_gaps_at_the_join():
+    """With `ego.observation = "extended_join"` each ramp agent's last two columns extrapolate
+    its own gap vehicles to its own arrival at the join point."""
+    from test_observation_layouts import check_gaps_at_join
+
+    cfg = FLOW.replace(**{"ego.observation": "extended_join"})
+    core = TrafficCore(cfg, batch_size=3, seed=0)
+    policy = policy_from_spec("gap", FLOW)
+    nan, checked = np.full(3, np.nan), 0
+    for _ in range(200):
+        roster, obs = core.ramp_agents(8)
+        assert obs.shape[2] == 19
+        checked += check_gaps_at_join(obs[roster.mask.astype(bool)], cfg)
+        cmd = ramp_commands(policy, obs, roster.mask)
+        core.rollout(nan, roster=roster, roster_accel=cmd[..., 0])
+    assert checked >= 50
+
+
 def test_a_shield_that_watches_the_left_lane_drives_ramp_agents():
     """`gap@shield-left` needs the extended layout: the ramp's agents are simulated with it, and
     a rule beside it in a mix drives in the same layout."""

@@ -28,7 +28,7 @@ from marlmerge.config.codec import from_dict, read_toml, set_dotted, to_dict
 from marlmerge.config.rules import check_values, num, positive, require
 
 MPH_TO_MPS = 0.44704
-OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel")
+OBSERVATION_LAYOUTS = ("paper", "extended", "extended_accel", "extended_join")
 """Values of `ego.observation` (the tables: `marlmerge.sim.observation.EGO_LAYOUTS`)."""
 RAMP_JOINS = ("forced", "when_safe")
 """Values of `ramp.join`."""
@@ -253,7 +253,8 @@ class EgoConfig:
     observation: str = "paper"
     """The ego's observation layout: "paper" (the paper's 7 features), "extended" (those, then
     the vehicle alongside, the nearest left-lane vehicles and the times to the join and merge
-    points) or "extended_accel" (those, then the ego's own acceleration;
+    points), "extended_accel" (those, then the ego's own acceleration) or "extended_join" (those,
+    then the gap vehicles' bumper gaps predicted at the ego's arrival at the join point;
     `marlmerge.sim.observation`)."""
     time_to_merge_cap_s: float = positive(10.0, 100.0)
     """The extended layout's times to the join and merge points are at most this."""

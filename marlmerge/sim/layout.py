@@ -334,6 +334,7 @@ _PARAMS = (
     "lapse_r_2",
     "lapse_r_3",
     "lapse_force",
+    "obs_join",
 )
 (
     P_DT,
@@ -434,6 +435,7 @@ _PARAMS = (
     P_LAPSE_R_2,
     P_LAPSE_R_3,
     P_LAPSE_FORCE,
+    P_OBS_JOIN,
 ) = range(len(_PARAMS))
 N_PARAMS = len(_PARAMS)
 
@@ -526,7 +528,7 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
     e, sensing, w = cfg.ego, cfg.sensing, cfg.reward
     p_lapse = lapse_step_probability(cfg)
     return {
-        "obs_extended": float(e.observation in ("extended", "extended_accel")),
+        "obs_extended": float(e.observation != "paper"),
         "time_cap_s": e.time_to_merge_cap_s,
         "lane_width_m": cfg.road.lane_width_m,
         "ramp_offset_m": cfg.road.ramp_offset_m,
@@ -545,7 +547,7 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "back_headway_s": w.back_headway_s,
         "w_back_ttc": w.w_back_ttc,
         "back_ttc_s": w.back_ttc_s,
-        "obs_accel": float(e.observation == "extended_accel"),
+        "obs_accel": float(e.observation in ("extended_accel", "extended_join")),
         "w_jerk": w.w_jerk,
         "ramp_flow": float(cfg.ramp.flowing),
         "ramp_join_when_safe": float(cfg.ramp.join == "when_safe"),
@@ -568,4 +570,5 @@ def _option_params(cfg: ScenarioConfig) -> dict[str, float]:
         "lapse_r_2": 1.0,
         "lapse_r_3": 1.0,
         "lapse_force": -1.0,
+        "obs_join": float(e.observation == "extended_join"),
     }

@@ -9,14 +9,15 @@ vehicle at the edge of the sensing range (`x_ego +- sensing_range_m`) driving at
 A missing leader or follower of a mainline vehicle is encoded as a gap equal to the sensing range
 and a speed equal to the vehicle's own speed.
 
-The ego has three layouts, chosen by `ego.observation` (`ego_features(cfg)`): `"paper"`
+The ego has four layouts, chosen by `ego.observation` (`ego_features(cfg)`): `"paper"`
 (`EGO_FEATURES`, the paper's state), `"extended"` (`EGO_EXTENDED_FEATURES`: the paper's state
 followed by the right-lane vehicle alongside the ego, the nearest left-lane vehicles and the time
-to the join and merge points) and `"extended_accel"` (the extended layout, then the ego's own
-acceleration). With `ego.join = "chosen"` every layout ends with `on_ramp` (`ON_RAMP_FEATURE`),
-which an agent choosing its join needs to tell joined from not joined. Every layout begins with
-the paper's seven features, so a reader of those (`marlmerge.policies`: gap acceptance, the
-scripted rules) works with any. In the extended layout
+to the join and merge points), `"extended_accel"` (the extended layout, then the ego's own
+acceleration) and `"extended_join"` (that, then the gap vehicles' bumper gaps predicted at the
+ego's arrival at the join point). With `ego.join = "chosen"` every layout ends with `on_ramp`
+(`ON_RAMP_FEATURE`), which an agent choosing its join needs to tell joined from not joined.
+Every layout begins with the paper's seven features, so a reader of those
+(`marlmerge.policies`: gap acceptance, the scripted rules) works with any. In the extended layout
 a missing vehicle (none alongside, none in the left lane within the sensing range, or hidden by
 occlusion) is the same virtual vehicle: dx = +sensing range (ahead, alongside) or -sensing range
 (behind), at the speed limit, overlap 0.
@@ -145,10 +146,37 @@ EGO_ACCEL_FEATURE = Feature(
 EGO_EXTENDED_ACCEL_FEATURES: tuple[Feature, ...] = EGO_EXTENDED_FEATURES + (EGO_ACCEL_FEATURE,)
 """`ego.observation = "extended_accel"`: the extended layout, then the ego's own acceleration
 (what a policy needs to see to keep the `jerk` reward term low)."""
+JOIN_GAP_FEATURES: tuple[Feature, ...] = (
+    Feature(
+        "lead_gap_at_join",
+        "m",
+        POSITION_SCALE_M,
+        "bumper gap from the ego to the gap-front vehicle when the ego reaches the join point, "
+        "both holding their speeds: (front_position - ego_position) + (front_speed - ego_speed) "
+        "x time_to_join - vehicle length, within +-sensing range; negative: their bodies would "
+        "overlap there; none: +sensing range",
+        "position",
+    ),
+    Feature(
+        "lag_gap_at_join",
+        "m",
+        POSITION_SCALE_M,
+        "bumper gap from the gap-back vehicle to the ego at the same moment: (ego_position - "
+        "back_position) + (ego_speed - back_speed) x time_to_join - vehicle length, within "
+        "+-sensing range; none: +sensing range",
+        "position",
+    ),
+)
+"""What `"extended_join"` adds: the paper's gap, extrapolated to the join (what gap acceptance
+tests, `marlmerge.policies.gap_acceptance`, at the ego's current speed)."""
+EGO_EXTENDED_JOIN_FEATURES: tuple[Feature, ...] = EGO_EXTENDED_ACCEL_FEATURES + JOIN_GAP_FEATURES
+"""`ego.observation = "extended_join"`: the extended layout with the ego's acceleration, then
+`JOIN_GAP_FEATURES`."""
 EGO_LAYOUTS: dict[str, tuple[Feature, ...]] = {
     "paper": EGO_FEATURES,
     "extended": EGO_EXTENDED_FEATURES,
     "extended_accel": EGO_EXTENDED_ACCEL_FEATURES,
+    "extended_join": EGO_EXTENDED_JOIN_FEATURES,
 }
 """The ego's layouts by the name `ego.observation` takes."""
 assert tuple(EGO_LAYOUTS) == OBSERVATION_LAYOUTS

@@ -40,6 +40,7 @@ from marlmerge.sim.layout import (
     P_NOISE_ON,
     P_OBS_ACCEL,
     P_OBS_EXTENDED,
+    P_OBS_JOIN,
     P_OBS_ON_RAMP,
     P_OCCLUSION,
     P_POS_NOISE,
@@ -104,6 +105,8 @@ def ego_observation(
         _times(p, dst, row, x_e, v_e)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = wf[b, WF_EGO_CMD] / p[P_ACCEL_SCALE]
+    if p[P_OBS_JOIN] > 0.0:
+        _gaps_at_join(p, dst, row, x_e, v_e, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
     if p[P_OBS_ON_RAMP] > 0.0:  # ego.join = "chosen"
         dst[row, int(p[P_OBS_ON_RAMP])] = 1.0 if vi[b, VI_LANE, EGO] == RAMP else 0.0
 
@@ -198,6 +201,8 @@ def agent_extended(
     _times(p, dst, row, x, v)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = vf[b, VF_ACC, s] / p[P_ACCEL_SCALE]
+    if p[P_OBS_JOIN] > 0.0:
+        _gaps_at_join(p, dst, row, x, v, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
 
 
 @kernel(inline=True)
@@ -216,6 +221,34 @@ def _times(p: np.ndarray, dst: np.ndarray, row: int, x_e: float, v_e: float) -> 
     cap, ts = p[P_TIME_CAP], p[P_TIME_SCALE]
     dst[row, 14] = time_to(p[P_X_OVERLAP] - x_e, v_e, cap) / ts
     dst[row, 15] = time_to(-x_e, v_e, cap) / ts
+
+
+@kernel
+def _gaps_at_join(
+    p: np.ndarray,
+    dst: np.ndarray,
+    row: int,
+    x_e: float,
+    v_e: float,
+    has_front: bool,
+    x_f: float,
+    v_f: float,
+    has_back: bool,
+    x_b: float,
+    v_b: float,
+) -> None:
+    """Columns 17-18 (`"extended_join"`): the bumper gaps to the gap-front and from the gap-back
+    vehicle (as reported) when the ego reaches the join point, all holding their speeds; within
+    +-sensing range, +sensing range where the vehicle is missing."""
+    length, rng, ps = p[P_LEN], p[P_SENSING], p[P_POSITION_SCALE]
+    t = time_to(p[P_X_OVERLAP] - x_e, v_e, p[P_TIME_CAP])
+    lead, lag = rng, rng
+    if has_front:
+        lead = min(max(x_f - x_e + (v_f - v_e) * t - length, -rng), rng)
+    if has_back:
+        lag = min(max(x_e - x_b + (v_e - v_b) * t - length, -rng), rng)
+    dst[row, 17] = lead / ps
+    dst[row, 18] = lag / ps
 
 
 # ----------------------------------------------------------------------------------------------
