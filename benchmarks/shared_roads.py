@@ -10,7 +10,9 @@ seeds collided in the grid, this drives each of those seeds and gap acceptance t
 checks the outcome is the grid's, and prints per road and policy: the outcome, who hit whom
 (the ego into the gap-front vehicle, the gap-back vehicle into the ego), where (the ego's x
 against the join point), and the ego's speed, lead and lag gaps (bumper, m) and lag time gap
-(s) as its front bumper passed the join point. Then the same pooled over the roads.
+(s) as its front bumper passed the join point, and the episode's return (with `--reward
+PRESET`, under that preset's reward: the reward changes no motion). Then the same pooled over
+the roads, and the returns by outcome. `--trace` prints one road decision by decision.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from marlmerge.config import to_dict
 from marlmerge.config.presets import resolve_config
 from marlmerge.evaluation.grid import road_seeds
 from marlmerge.evaluation.metrics import EpisodeTrajectory
@@ -51,15 +54,26 @@ def shared_roads(path: str, policy: str, min_seeds: int) -> tuple[dict, dict]:
     return {k: sorted(v) for k, v in hits.items() if len(v) >= min_seeds}, gap
 
 
-def drive(spec: str, run: str | None, preset: str, episode: int, root: int) -> EpisodeTrajectory:
-    """One road of a grid condition driven again by one policy (one training run)."""
+def drive(
+    spec: str, run: str | None, preset: str, episode: int, root: int, reward: dict | None = None
+) -> tuple[EpisodeTrajectory, float]:
+    """One road of a grid condition driven again by one policy (one training run): its
+    trajectory and its episode's total reward, under the condition's reward or, with `reward`
+    (dotted `reward.*` overrides), another one (the reward changes no draw and no motion)."""
     p = parse_policy(spec)
-    scen = scenario_for(p, run, resolve_config(preset))
+    scen = scenario_for(p, run, resolve_config(preset)).replace(**(reward or {}))
     seeds = road_seeds(root, scen.name, episode + 1)[episode:]
-    _, traces = rollout_first_egos(
+    rec, traces = rollout_first_egos(
         make_policy(p, run, scen), scen, 1, 0, 1, record=True, road_seeds=seeds
     )
-    return traces[0]
+    return traces[0], float(rec["reward"][0])
+
+
+def reward_of(preset: str | None) -> dict | None:
+    """A preset's reward as dotted overrides (None: keep each condition's)."""
+    if preset is None:
+        return None
+    return {f"reward.{k}": v for k, v in to_dict(resolve_config(preset).reward).items()}
 
 
 def at_join(tr: EpisodeTrajectory, x_join_m: float) -> dict[str, float]:
@@ -146,29 +160,16 @@ def print_trace(args: argparse.Namespace) -> None:
         )
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("episodes_csv")
-    ap.add_argument("--policy", default="hardened")
-    ap.add_argument("--kind", default="quadq", help="the learned policy's kind")
-    ap.add_argument("--min-seeds", type=int, default=4)
-    ap.add_argument("--root-seed", type=int, default=2_000_000)
-    ap.add_argument(
-        "--trace",
-        metavar="CONDITION,EPISODE,RUN",
-        help="instead, one road decision by decision (RUN: a run folder, or gap)",
-    )
-    args = ap.parse_args()
-    if args.trace:
-        print_trace(args)
-        return
+def print_roads(args: argparse.Namespace) -> dict[str, list[dict]]:
+    """The per-road table; returns its rows by `learned` / `gap`."""
     roads, gap_outcome = shared_roads(args.episodes_csv, args.policy, args.min_seeds)
+    reward = reward_of(args.reward)
     print(f"{len(roads)} roads where at least {args.min_seeds} seeds of {args.policy} collided\n")
     print(
         "| condition | episode | policy | outcome | crash | x at end m | v at end m/s "
-        "| v at join m/s | lead m | lag m | lag s | t at join s |"
+        "| v at join m/s | lead m | lag m | lag s | t at join s | return |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     pooled: dict[str, list[dict]] = defaultdict(list)
     mismatches = 0
     for (cond, ep), runs in sorted(roads.items()):
@@ -176,20 +177,27 @@ def main() -> None:
         x_join = resolve_config(preset).x_overlap_m
         rows = [(f"{args.kind}:{r}", r, "learned") for r in runs] + [("gap", None, "gap")]
         for spec, run, who in rows:
-            tr = drive(spec, run, preset, ep, args.root_seed)
+            tr, ret = drive(spec, run, preset, ep, args.root_seed, reward)
             want = "collision" if who == "learned" else gap_outcome.get((cond, ep), "?")
             got = OUTCOMES.get(tr.outcome, "running")
             mismatches += got != want
             j = at_join(tr, x_join)
             row = {"who": who, "crash": crash(tr), "x_end": float(tr.x_m[-1]) - x_join, **j}
+            row |= {"outcome": got, "return": ret}
             pooled[who].append(row)
             note = "" if got == want else f" (grid: {want})"
             print(
                 f"| {cond} | {ep} | {run or 'gap'} | {got}{note} | {row['crash']}"
                 f" | {row['x_end']:+.1f} | {float(tr.v_mps[-1]):.1f} | {j['v']:.1f}"
-                f" | {j['lead']:.1f} | {j['lag']:.1f} | {j['lag_s']:.2f} | {j['t']:.1f} |"
+                f" | {j['lead']:.1f} | {j['lag']:.1f} | {j['lag_s']:.2f} | {j['t']:.1f}"
+                f" | {ret:.1f} |"
             )
     print(f"\noutcomes differing from the grid's: {mismatches}\n")
+    return pooled
+
+
+def print_pooled(pooled: dict[str, list[dict]], reward: str | None) -> None:
+    """Who hit whom and where, the state at the join, and the episodes' returns, pooled."""
     print(
         "| policy | episodes | crash front / back / side | of them within 3 m past the join "
         "| x at end past join m (median) | v at join (median) | lead m (median) "
@@ -208,6 +216,38 @@ def main() -> None:
             f" | {med('x_end'):+.1f}"
             f" | {med('v'):.1f} | {med('lead'):.1f} | {med('lag'):.1f} | {med('lag_s'):.2f} |"
         )
+    print(f"\nEpisode returns under {reward or 'each condition'}'s reward:\n")
+    print("| policy | outcome | episodes | median | mean |")
+    print("|---|---|---|---|---|")
+    for who, rs in pooled.items():
+        for outcome in ("all", *OUTCOMES.values()):
+            r = [x["return"] for x in rs if outcome in ("all", x["outcome"])]
+            if r:
+                print(f"| {who} | {outcome} | {len(r)} | {np.median(r):.1f} | {np.mean(r):.1f} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("episodes_csv")
+    ap.add_argument("--policy", default="hardened")
+    ap.add_argument("--kind", default="quadq", help="the learned policy's kind")
+    ap.add_argument("--min-seeds", type=int, default=4)
+    ap.add_argument("--root-seed", type=int, default=2_000_000)
+    ap.add_argument(
+        "--reward",
+        metavar="PRESET",
+        help="score the episodes with this preset's reward (e.g. the recipe's training traffic)",
+    )
+    ap.add_argument(
+        "--trace",
+        metavar="CONDITION,EPISODE,RUN",
+        help="instead, one road decision by decision (RUN: a run folder, or gap)",
+    )
+    args = ap.parse_args()
+    if args.trace:
+        print_trace(args)
+        return
+    print_pooled(print_roads(args), args.reward)
 
 
 if __name__ == "__main__":

@@ -81,5 +81,9 @@ def test_a_road_driven_again_is_the_grids_road():
     cell = Cell(parse_policy("gap"), None, Condition(preset, preset), None, 4, root, 4)
     rows = run_cell(cell)
     for e in (1, 3):
-        again = episode_metrics(sr.drive("gap", None, preset, e, root))
+        tr, ret = sr.drive("gap", None, preset, e, root)
+        again = episode_metrics(tr)
         assert again == {k: v for k, v in rows[e].items() if k in again}
+        # another reward scores the same motion differently
+        scored, ret2 = sr.drive("gap", None, preset, e, root, sr.reward_of("hardened_mix"))
+        assert np.array_equal(scored.x_m, tr.x_m) and ret2 != ret
