@@ -93,7 +93,12 @@ roads first; it judged the hardened recipe's checkpoint chosen on the stress spa
 HELDOUT12_SEED = 20261217
 """The seed the twelfth held-out set (`envs/heldout12_*`) was drawn with: committed before
 anyone ran a policy on it, for the round that trains the hardened recipe with a risk-averse
-(expectile) TD loss (`TrainConfig.td_expectile`)."""
+(expectile) TD loss (`TrainConfig.td_expectile`). That and the next three variants failed on
+spent sets first; it judged `trainers/hardened_join.toml` (docs/stress.md, attempt 12)."""
+HELDOUT13_SEED = 20261218
+"""The seed the thirteenth held-out set (`envs/heldout13_*`) was drawn with: committed before
+anyone ran a policy on it, after the twelfth set had judged `trainers/hardened_join.toml`, for
+the round that next tunes a recipe."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -105,6 +110,7 @@ HELDOUT_SETS = {
     "heldout10": HELDOUT10_SEED,
     "heldout11": HELDOUT11_SEED,
     "heldout12": HELDOUT12_SEED,
+    "heldout13": HELDOUT13_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
