@@ -111,7 +111,8 @@ def decisions(spec: str, run: str | None, preset: str, episode: int, root: int) 
     """One grid road driven again, decision by decision: the ego's position and speed, its
     command, its time to the join point and the paper's gap (the gap vehicles' bumper gaps now,
     and extrapolated to the ego's arrival at the join point at constant speeds, as the
-    `"extended_join"` layout shows them; m, s, m/s, m/s^2)."""
+    `"extended_join"` layout computes them but without its time cap and clipping, from the
+    paper's seven features, so for any layout; m, s, m/s, m/s^2)."""
     import torch
 
     from marlmerge.sim.observation import EGO_SCALE
