@@ -173,7 +173,7 @@ def check_shield_left(spec: PolicySpec, scenario: ScenarioConfig) -> None:
         raise ValueError(
             f"policy {spec.name!r} on {scenario.name!r}: @shield-left reads the left lane, which "
             f"ego.observation = {scenario.ego.observation!r} does not show (a policy trained "
-            "with 'extended' or 'extended_accel' does)"
+            "with 'extended', 'extended_accel' or 'extended_join' does)"
         )
 
 

@@ -427,7 +427,7 @@ class GapShield:
         if watch_left and not shows_left_lane(self.cfg):
             raise ValueError(
                 f"GapShield(watch_left=True) reads the left-lane features; ego.observation = "
-                f"{self.cfg.ego.observation!r} has none (use 'extended' or 'extended_accel')"
+                f"{self.cfg.ego.observation!r} has none (use any layout but 'paper')"
             )
         names = [f.name for f in ego_features(self.cfg)]
         self._left = tuple(names.index(n) for n in LEFT_LANE_FEATURES) if watch_left else None
