@@ -98,7 +98,12 @@ spent sets first; it judged `trainers/hardened_join.toml` (docs/stress.md, attem
 HELDOUT13_SEED = 20261218
 """The seed the thirteenth held-out set (`envs/heldout13_*`) was drawn with: committed before
 anyone ran a policy on it, after the twelfth set had judged `trainers/hardened_join.toml`, for
-the round that next tunes a recipe."""
+the round that next tunes a recipe. It judged `hardened_join` with collisions at 80
+(docs/stress.md, attempt 13)."""
+HELDOUT14_SEED = 20261219
+"""The seed the fourteenth held-out set (`envs/heldout14_*`) was drawn with: committed before
+anyone ran a policy on it, after the thirteenth set had judged attempt 13, for the round that
+next tunes a recipe."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -111,6 +116,7 @@ HELDOUT_SETS = {
     "heldout11": HELDOUT11_SEED,
     "heldout12": HELDOUT12_SEED,
     "heldout13": HELDOUT13_SEED,
+    "heldout14": HELDOUT14_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
