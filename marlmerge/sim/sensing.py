@@ -102,11 +102,11 @@ def ego_observation(
     if p[P_OBS_EXTENDED] > 0.0:
         _side(p, dst, row, x_e, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
         _left(S, b, p, dst, row, noise, zi, EGO)
-        _times(p, dst, row, x_e, v_e)
+        t_join = _times(p, dst, row, x_e, v_e)
+        if p[P_OBS_JOIN] > 0.0:
+            _gaps_at_join(p, dst, row, t_join, x_e, v_e, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = wf[b, WF_EGO_CMD] / p[P_ACCEL_SCALE]
-    if p[P_OBS_JOIN] > 0.0:
-        _gaps_at_join(p, dst, row, x_e, v_e, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
     if p[P_OBS_ON_RAMP] > 0.0:  # ego.join = "chosen"
         dst[row, int(p[P_OBS_ON_RAMP])] = 1.0 if vi[b, VI_LANE, EGO] == RAMP else 0.0
 
@@ -198,11 +198,11 @@ def agent_extended(
     front, back, x_f, v_f, _, x_b, v_b, _ = gap
     _side(p, dst, row, x, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
     _left(S, b, p, dst, row, X[1], -1, s)
-    _times(p, dst, row, x, v)
+    t_join = _times(p, dst, row, x, v)
     if p[P_OBS_ACCEL] > 0.0:
         dst[row, 16] = vf[b, VF_ACC, s] / p[P_ACCEL_SCALE]
     if p[P_OBS_JOIN] > 0.0:
-        _gaps_at_join(p, dst, row, x, v, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
+        _gaps_at_join(p, dst, row, t_join, x, v, front >= 0, x_f, v_f, back >= 0, x_b, v_b)
 
 
 @kernel(inline=True)
@@ -216,11 +216,14 @@ def time_to(distance_m: float, v_mps: float, cap_s: float) -> float:
 
 
 @kernel
-def _times(p: np.ndarray, dst: np.ndarray, row: int, x_e: float, v_e: float) -> None:
-    """Columns 14-15: the times to the join point and to the merge point."""
+def _times(p: np.ndarray, dst: np.ndarray, row: int, x_e: float, v_e: float) -> float:
+    """Columns 14-15: the times to the join point and to the merge point; returns the first
+    (s, unscaled)."""
     cap, ts = p[P_TIME_CAP], p[P_TIME_SCALE]
-    dst[row, 14] = time_to(p[P_X_OVERLAP] - x_e, v_e, cap) / ts
+    t_join = time_to(p[P_X_OVERLAP] - x_e, v_e, cap)
+    dst[row, 14] = t_join / ts
     dst[row, 15] = time_to(-x_e, v_e, cap) / ts
+    return t_join
 
 
 @kernel
@@ -228,6 +231,7 @@ def _gaps_at_join(
     p: np.ndarray,
     dst: np.ndarray,
     row: int,
+    t: float,
     x_e: float,
     v_e: float,
     has_front: bool,
@@ -238,10 +242,10 @@ def _gaps_at_join(
     v_b: float,
 ) -> None:
     """Columns 17-18 (`"extended_join"`): the bumper gaps to the gap-front and from the gap-back
-    vehicle (as reported) when the ego reaches the join point, all holding their speeds; within
-    +-sensing range, +sensing range where the vehicle is missing."""
+    vehicle (as reported) when the ego reaches the join point, `t` s from now (`_times`), all
+    holding their speeds; within +-sensing range, +sensing range where the vehicle is
+    missing."""
     length, rng, ps = p[P_LEN], p[P_SENSING], p[P_POSITION_SCALE]
-    t = time_to(p[P_X_OVERLAP] - x_e, v_e, p[P_TIME_CAP])
     lead, lag = rng, rng
     if has_front:
         lead = min(max(x_f - x_e + (v_f - v_e) * t - length, -rng), rng)
