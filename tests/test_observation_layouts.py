@@ -4,6 +4,7 @@ view sized from the layout."""
 import gymnasium
 import numpy as np
 import pytest
+import torch
 from pettingzoo.test import parallel_api_test
 from scenes import scene
 from torchrl.envs.utils import check_env_specs
@@ -199,11 +200,16 @@ def test_the_ego_sees_the_acceleration_it_applied():
 JOIN = {"ego.observation": "extended_join"}
 
 
+JOIN_SCALE = np.array([f.scale for f in EGO_EXTENDED_JOIN_FEATURES])
+_J = {f.name: i for i, f in enumerate(EGO_EXTENDED_JOIN_FEATURES)}
+
+
 def _join_gaps(core) -> tuple[float, float]:
     """The two `"extended_join"` columns in metres."""
     obs = core.observe()[0][0]
     assert obs.shape == (19,)
-    return float(obs[17]) * 100.0, float(obs[18]) * 100.0
+    raw = obs * JOIN_SCALE
+    return float(raw[_J["lead_gap_at_join"]]), float(raw[_J["lag_gap_at_join"]])
 
 
 def test_gaps_at_join_extrapolate_the_gap_vehicles_to_the_join_point():
@@ -235,16 +241,16 @@ def test_gaps_at_join_flag_an_overlap_and_missing_vehicles():
 
 
 def check_gaps_at_join(obs: np.ndarray, cfg: ScenarioConfig) -> int:
-    """Columns 17-18 of `"extended_join"` observations [..., 19] against the same rows' gap
-    vehicles (columns 0-5) and time to the join (column 14); returns the rows with both gap
-    vehicles present (a missing one reads +sensing range)."""
-    raw = obs.reshape(-1, obs.shape[-1]).astype(np.float64)
-    x, v = raw[:, 1] * 100.0, raw[:, 0] * 30.0
-    t = raw[:, 14] * 10.0
+    """The `"extended_join"` gaps of observations [..., 19] against the same rows' gap vehicles
+    (the paper's features) and time to the join; returns the rows with both gap vehicles
+    present (a missing one reads +sensing range)."""
+    raw = obs.reshape(-1, obs.shape[-1]).astype(np.float64) * JOIN_SCALE  # SI units
+    f = {name: raw[:, i] for name, i in _J.items()}
+    x, v, t = f["ego_position"], f["ego_speed"], f["time_to_join"]
     rng, length = cfg.ego.sensing_range_m, cfg.vehicle.length_m
-    lead = np.clip(raw[:, 3] * 100.0 - x + (raw[:, 2] * 30.0 - v) * t - length, -rng, rng)
-    lag = np.clip(x - raw[:, 5] * 100.0 + (v - raw[:, 4] * 30.0) * t - length, -rng, rng)
-    got_lead, got_lag = raw[:, 17] * 100.0, raw[:, 18] * 100.0
+    lead = np.clip(f["front_position"] - x + (f["front_speed"] - v) * t - length, -rng, rng)
+    lag = np.clip(x - f["back_position"] + (v - f["back_speed"]) * t - length, -rng, rng)
+    got_lead, got_lag = f["lead_gap_at_join"], f["lag_gap_at_join"]
     ok_lead = np.isclose(got_lead, lead, atol=2e-3) | np.isclose(got_lead, rng, atol=2e-3)
     ok_lag = np.isclose(got_lag, lag, atol=2e-3) | np.isclose(got_lag, rng, atol=2e-3)
     assert ok_lead.all() and ok_lag.all()
@@ -257,7 +263,8 @@ def test_gaps_at_join_follow_the_reported_gap_in_traffic():
         num_worlds=8, seed=3, overrides={**JOIN, "traffic.flow_vph_per_lane": 1500}
     )
     check_env_specs(env, seed=3)
-    td = env.rollout(60, break_when_any_done=False)
+    hold = torch.zeros(8, 1)  # a fixed command: the same traffic on every run
+    td = env.rollout(60, policy=lambda td: td.set("action", hold), break_when_any_done=False)
     obs = td["next", "observation"].numpy()
     assert obs.shape == (8, 60, 19)
     assert check_gaps_at_join(obs, env.core.cfg) >= 100
