@@ -284,14 +284,15 @@ def test_fast_updater_copies_target_every_p_updates():
 # --- fast path -------------------------------------------------------------------------------
 
 
-def _fast_vs_reference(k: int, compile: bool = False, join: bool = False) -> None:
+def _fast_vs_reference(k: int, compile: bool = False, join: bool = False, peaks: int = 1) -> None:
     g = _gen(15)
     rep = _filled_replay(500, g, join)
     rows = rep.sample((k, 32), g)
     pair = []
     extra = ((-1.0, 1.0),) if join else ()
     for _ in range(2):
-        loss = qq.QuadraticQLoss(_net(hidden=64, extra_bounds=extra), gamma=0.95)
+        net = _net(hidden=64, extra_bounds=extra, peaks=peaks)
+        loss = qq.QuadraticQLoss(net, gamma=0.95)
         _perturb_target(loss, _gen(16))
         pair.append(loss)
     fast_loss, ref_loss = pair
@@ -337,6 +338,60 @@ def test_fast_path_matches_lossmodule_and_adam():
 
 def test_fast_path_with_a_join_component_matches_lossmodule_and_adam():
     _fast_vs_reference(k=5, join=True)
+
+
+def test_fast_path_with_three_peaks_matches_lossmodule_and_adam():
+    _fast_vs_reference(k=5, peaks=3)
+
+
+def test_one_peak_is_the_paper_network():
+    paper, one = _net(3), _net(3, peaks=1)
+    assert one.n_heads == 3 and paper.state_dict().keys() == one.state_dict().keys()
+    for key, value in one.state_dict().items():
+        assert torch.equal(value, paper.state_dict()[key]), key
+    rows = _filled_replay(200, _gen(5)).sample((5, 32), _gen(6))
+    updaters = [
+        qq.FastQuadQUpdater(qq.QuadraticQLoss(net), None, generator=_gen(0), updates_per_call=5)
+        for net in (paper, one)
+    ]
+    assert torch.equal(updaters[0].step(rows), updaters[1].step(rows))
+    assert torch.equal(updaters[0].flat, updaters[1].flat)
+
+
+def test_several_peaks_hold_two_good_commands_and_act_on_the_better():
+    net = _net(6, peaks=2)
+    assert net.n_heads == 6 and net.head_weight.shape == (6, 16)
+    obs = torch.randn(7, OBS_DIM, generator=_gen(8))
+    a, b, c = net(obs)
+    assert a.shape == b.shape == c.shape == (7, 2) and (a < 0).all()
+    # the B biases start spread over the range: one piece low, one high
+    assert (b[:, 0] < b[:, 1]).all()
+    grid = torch.linspace(LOW, HIGH, 701)[:, None]  # [G, 1]
+    q = net.q(obs[:, None, :].expand(-1, 701, -1), grid[None])  # [7, G, 1]
+    torch.testing.assert_close(grid[q[..., 0].argmax(-1)], net.greedy(obs), atol=0.011, rtol=0)
+    torch.testing.assert_close(net.q(obs, net.greedy(obs)), net.max_value(obs))
+    torch.testing.assert_close(net.max_value(obs), c.amax(-1, keepdim=True))
+    # Q between the two peaks dips below both: two maxima, which one quadratic cannot hold
+    with torch.no_grad():
+        net.head_bias[4:6] = 0.0  # C_0 = C_1 up to the hidden units' share
+        net.head_weight[4:6] = 0.0
+        net.head_bias[0:2] = 5.0  # sharp pieces
+    q = net.q(obs[:1].expand(701, -1), grid)[:, 0]
+    b0, b1 = net(obs[:1])[1][0]
+    mid = q[(grid[:, 0] - (b0 + b1) / 2).abs().argmin()]
+    assert mid < q[(grid[:, 0] - b0).abs().argmin()] - 1.0
+    assert mid < q[(grid[:, 0] - b1).abs().argmin()] - 1.0
+
+
+def test_several_peaks_are_refused_where_they_do_not_fit():
+    with pytest.raises(ValueError, match="peaks must be >= 1"):
+        _net(peaks=2, extra_bounds=((-1.0, 1.0),))
+    with pytest.raises(ValueError, match="peaks must be >= 1"):
+        _net(peaks=0)
+    loss = qq.QuadraticQLoss(_net(peaks=2), gamma=0.95)
+    fast = qq.FastQuadQUpdater(loss, None, generator=_gen(0), updates_per_call=5)
+    with pytest.raises(ValueError, match="imitation takes a network of one peak"):
+        fast.imitate(_teacher, 1.0)
 
 
 def test_a_second_action_component_is_a_separable_quadratic():
@@ -505,9 +560,12 @@ def test_an_imitation_weight_must_be_positive():
         ({"td_expectile": 0.0}, r"td_expectile must be in \[0.05, 0.95\], got 0.0"),
         ({"td_expectile": 0.3, "algorithm": "td3"}, r"td_expectile = 0.3 .* got 'td3' on"),
         ({"td_expectile": 0.3, "update_path": "torchrl"}, r"got 'quadq' on 'torchrl'"),
+        ({"peaks": 0}, r"peaks must be in \[1, 8\], got 0"),
+        ({"peaks": 2, "algorithm": "td3"}, r"peaks = 2 .* got 'td3' and 0.0"),
+        ({"peaks": 2, "shield": "shield", "shield_imitation": 1.0}, r"got 'quadq' and 1.0"),
     ],
 )
-def test_bad_expectile_settings_are_named(values, message):
+def test_bad_expectile_and_peaks_settings_are_named(values, message):
     from marlmerge.config.training import TrainConfig
 
     with pytest.raises(ValueError, match=message):

@@ -103,6 +103,7 @@ def test_a_torch_file_without_the_policy_keys_names_the_file_and_the_key(
     [
         ({"algorithm": "ppo"}, "unknown ego algorithm 'ppo'"),
         ({"policy_state": {"net": {}}}, "lacks 'hidden'"),
+        ({"policy_state": {"net": {}, "hidden": 8, "peaks": 0}}, "peaks must be an integer >= 1"),
         ({"action_bounds_mps2": [2.0, -1.0]}, "action_bounds_mps2"),
         ({"scenario": {"road": {"lane_width_m": -1.0}}}, "scenario is not valid"),
         ({"observation": "paper"}, "holds a str, not a dict"),
@@ -122,6 +123,21 @@ def test_weights_that_do_not_fit_the_network_name_the_file(tmp_path):
     saved["policy_state"]["hidden"] = 16  # the saved weights are 8 wide
     files.save(saved, tmp_path / "p.pt")
     with pytest.raises(ValueError, match="do not fit the network"):
+        load_policy(tmp_path / "p.pt")
+
+
+def test_a_policy_of_several_peaks_loads_as_saved_and_a_wrong_count_names_the_file(tmp_path):
+    from marlmerge.learners.loading import load_policy
+
+    net = QuadraticQNet(7, 8, generator=torch.Generator().manual_seed(2), peaks=2)
+    state = {"net": net.state_dict(), "hidden": 8, "peaks": 2}
+    write_policy(tmp_path / "p.pt", "ego", "quadq", (-4.5, 2.5), state, {}, SCEN)
+    obs = torch.randn(9, 7, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(load_policy(tmp_path / "p.pt")(obs), net.greedy(obs))
+    saved = files.load(tmp_path / "p.pt")
+    saved["policy_state"]["peaks"] = 3  # the weights hold two pieces
+    files.save(saved, tmp_path / "p.pt")
+    with pytest.raises(ValueError, match="p.pt: the saved weights do not fit the network"):
         load_policy(tmp_path / "p.pt")
 
 

@@ -224,6 +224,8 @@ def test_seeds_refuse_a_seed_set_and_levels_without_sample_before_any_work(tmp_p
     args = ["train", "--seeds", "0-1", "--set", "levels.replay_fraction=0.5", "--out", str(out)]
     assert main(args) == 2
     assert "needs a scenario with [sample] ranges" in capsys.readouterr().err
+    assert main(["train", "--seeds", "0-1", "--set", "peaks=2", "--out", str(out)]) == 2
+    assert "peaks = 2 (a Q of several pieces)" in capsys.readouterr().err
     with pytest.raises(ValueError, match="only train"):
         sweep("cotrain", [0, 1], out, vectorized=True, progress=False)
     assert not out.exists()

@@ -238,6 +238,13 @@ class TrainConfig(RunConfig):
     gap that usually holds) weigh more: a risk-averse critic, and B(s) moves away from the
     commands whose returns spread downwards. 0.5: the paper's squared error. quadq on the
     fast or compiled path."""
+    peaks: int = num(1, 1, 8)
+    """K quadratic pieces of the quadratic Q, which is then the largest of them: Q(s, a) =
+    max_k A_k(s) (B_k(s) - a)^2 + C_k(s), acting with the B of the largest C
+    (`marlmerge.learners.quadq.QuadraticQNet`). Several pieces can hold several good commands
+    at once (brake and let a vehicle pass, or go), where one quadratic holds one. 1: the
+    paper's network. quadq with one action component, no `shield_imitation`, seeds trained one
+    by one (not `--seeds`)."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -283,6 +290,12 @@ class TrainConfig(RunConfig):
                     f"td_expectile = {self.td_expectile} weighs the quadratic Q's fast-path "
                     "loss: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
                     f"{self.algorithm!r} on {self.update_path!r}",
+                ),
+                (
+                    self.peaks == 1 or (self.algorithm == "quadq" and self.shield_imitation == 0.0),
+                    f"peaks = {self.peaks} shapes the quadratic Q without imitation: algorithm "
+                    f"= 'quadq' and shield_imitation = 0, got {self.algorithm!r} and "
+                    f"{self.shield_imitation}",
                 ),
                 (
                     not self.shield_drives or self.algorithm != "dqn",

@@ -189,6 +189,9 @@ def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
                     f"{path}: weight {name!r} of policy_state.net holds NaN or infinite "
                     "values: the policy would command NaN"
                 )
+    peaks = state.get("peaks", 1)  # quadq's pieces (`QuadraticQNet.peaks`)
+    if not (isinstance(peaks, int) and not isinstance(peaks, bool) and peaks >= 1):
+        raise ValueError(f"{path}: policy_state.peaks must be an integer >= 1, got {peaks!r}")
     extra = state.get("extra_bounds", [])  # the join's, with ego.join = "chosen"
     if not isinstance(extra, list | tuple):
         raise ValueError(f"{path}: policy_state.extra_bounds must be a list, got {extra!r}")

@@ -102,8 +102,9 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     if algorithm == "quadq":
         extra = tuple(tuple(b) for b in state.get("extra_bounds", ()))  # the join, if chosen
         net = QuadraticQNet(
-            obs_dim, state["hidden"], action_low=lo, action_high=hi, extra_bounds=extra
-        )
+            obs_dim, state["hidden"], action_low=lo, action_high=hi, extra_bounds=extra,
+            peaks=state.get("peaks", 1),  # the pieces of the envelope, if more than one
+        )  # fmt: skip
         load_weights(net, state["net"], path)
         net.eval()
 

@@ -70,6 +70,17 @@ def head_rows(m: int) -> tuple[slice, slice, int]:
     return slice(0, m), slice(m, 2 * m), 2 * m
 
 
+def n_heads(m: int, peaks: int = 1) -> int:
+    """Heads of the network: 2m + 1 with one peak (A_0..A_{m-1}, B_0..B_{m-1}, C); 3 per
+    peak with several (one action component: A_0..A_{K-1}, B_0..B_{K-1}, C_0..C_{K-1})."""
+    return 2 * m + 1 if peaks == 1 else 3 * peaks
+
+
+def peak_rows(peaks: int) -> tuple[slice, slice, slice]:
+    """The rows of the A, B and C heads of a network with `peaks` pieces (one component)."""
+    return slice(0, peaks), slice(peaks, 2 * peaks), slice(2 * peaks, 3 * peaks)
+
+
 def b_bounds(
     lows: tuple[float, ...], spans: tuple[float, ...], like: Tensor
 ) -> tuple[Tensor | float, Tensor | float]:
@@ -93,6 +104,13 @@ class QuadraticQNet(nn.Module):
     `ego.join = "chosen"`) the form is separable, Q(s, a) = sum_i A_i(s) (B_i(s) - a_i)^2 +
     C(s), with 2m + 1 heads (A_0..A_{m-1}, B_0..B_{m-1}, C); the greedy action is still B(s)
     and the maximum C(s). With m = 1 it is the paper's network, parameter for parameter.
+
+    With K = `peaks` > 1 (one action component) Q is the upper envelope of K such pieces,
+    Q(s, a) = max_k A_k(s) (B_k(s) - a)^2 + C_k(s), with 3K heads (A_0..A_{K-1},
+    B_0..B_{K-1}, C_0..C_{K-1}): it can hold several peaks (brake or go), which one quadratic
+    cannot. The maximum is max_k C_k(s), the greedy action B_k*(s) with k* = argmax_k C_k(s)
+    (the first on a tie). The B biases start spread over the action range, so the pieces
+    begin at different commands.
 
     Layer 1 is ``hidden: Linear(obs_dim, 3 * hidden)`` (rows ``[k*H:(k+1)*H]`` belong to head
     k = A, B, C), ReLU, then a block-diagonal layer 2: head k reads only its own H hidden
@@ -118,6 +136,7 @@ class QuadraticQNet(nn.Module):
         action_low, action_high: action bounds, m/s^2.
         extra_bounds: (low, high) of each further action component (none: the paper's 1-D
             action).
+        peaks: K quadratic pieces (1: the paper's network; more: one action component only).
         a_min, a_max: bounds on the curvature magnitude |A|.
         a_init: |A| at initialisation (sets the A bias); ``None`` keeps the nn.Linear init.
         generator: seeds the initialisation; ``None`` uses a fresh ``torch.Generator``
@@ -136,8 +155,14 @@ class QuadraticQNet(nn.Module):
         a_init: float | None = 0.1,
         generator: torch.Generator | None = None,
         extra_bounds: tuple[tuple[float, float], ...] = (),
+        peaks: int = 1,
     ) -> None:
         super().__init__()
+        if peaks < 1 or (peaks > 1 and extra_bounds):
+            raise ValueError(
+                f"peaks must be >= 1, and 1 with several action components; got {peaks} with "
+                f"{len(extra_bounds)} further components"
+            )
         bounds = ((float(action_low), float(action_high)), *extra_bounds)
         for lo, hi in bounds:
             if not lo < hi:
@@ -152,12 +177,13 @@ class QuadraticQNet(nn.Module):
         self.a_max = float(a_max)
         self.extra_bounds = tuple((float(lo), float(hi)) for lo, hi in extra_bounds)
         self.action_dim = m = len(bounds)
-        self.n_heads = n = 2 * m + 1
+        self.peaks = int(peaks)
+        self.n_heads = n = n_heads(m, self.peaks)
         self._low = tuple(lo for lo, _ in bounds)  # the B heads' bounds (no tensors: the
         self._span = tuple(hi - lo for lo, hi in bounds)  # parameters are the paper's keys)
         self.hidden = nn.Linear(obs_dim, n * hidden)
-        self.head_weight = nn.Parameter(torch.empty(n, hidden))  # [2m + 1, H]
-        self.head_bias = nn.Parameter(torch.empty(n))  # [2m + 1]
+        self.head_weight = nn.Parameter(torch.empty(n, hidden))  # [n heads, H]
+        self.head_bias = nn.Parameter(torch.empty(n))  # [n heads]
         gen = generator if generator is not None else torch.Generator().manual_seed(0)
         self.reset_parameters(gen, a_init=a_init)
 
@@ -177,41 +203,62 @@ class QuadraticQNet(nn.Module):
             if not self.a_min < a_init < self.a_max:
                 raise ValueError(f"a_init must lie in (a_min, a_max), got {a_init}")
             frac = (a_init - self.a_min) / (self.a_max - self.a_min)
-            self.head_bias[head_rows(self.action_dim)[0]] = math.log(frac / (1.0 - frac))
+            self.head_bias[self._rows()[0]] = math.log(frac / (1.0 - frac))
+        if self.peaks > 1:  # B_k starts at the k-th of K evenly spread points of the range
+            quantiles = (torch.arange(self.peaks, dtype=torch.float64) + 0.5) / self.peaks
+            self.head_bias[self._rows()[1]] = torch.logit(quantiles).to(self.head_bias.dtype)
+
+    def _rows(self) -> tuple[slice, slice, slice]:
+        """The rows of the A, B and C heads."""
+        if self.peaks > 1:
+            return peak_rows(self.peaks)
+        rows_a, rows_b, c = head_rows(self.action_dim)
+        return rows_a, rows_b, slice(c, c + 1)
 
     @property
     def action_span(self) -> float:
         return self.action_high - self.action_low
 
     def heads(self, obs: Tensor) -> Tensor:
-        """Pre-activation head outputs ``z = [z_A, z_B, z_C]``: [..., obs_dim] -> [..., 2m + 1]."""
-        h = torch.relu(self.hidden(obs))  # [..., (2m + 1) H]
-        h = h.unflatten(-1, (self.n_heads, self.hidden_dim))  # [..., 2m + 1, H]
-        return (h * self.head_weight).sum(-1) + self.head_bias  # [..., 2m + 1]
+        """Pre-activation head outputs ``z = [z_A, z_B, z_C]``: [..., obs_dim] -> [..., n]
+        (n = `n_heads`: 2m + 1, or 3K with K peaks)."""
+        h = torch.relu(self.hidden(obs))  # [..., n H]
+        h = h.unflatten(-1, (self.n_heads, self.hidden_dim))  # [..., n, H]
+        return (h * self.head_weight).sum(-1) + self.head_bias  # [..., n]
 
     def forward(self, obs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``obs [..., obs_dim] -> (A, B, C)``, [..., m], [..., m], [..., 1]; A < 0, B inside
-        the bounds."""
+        """``obs [..., obs_dim] -> (A, B, C)``, [..., m], [..., m], [..., 1] (with K peaks
+        [..., K] each); A < 0, B inside the bounds."""
         z = self.heads(obs)
-        rows_a, rows_b, c = head_rows(self.action_dim)
-        za, zb, zc = z[..., rows_a], z[..., rows_b], z[..., c : c + 1]
+        rows_a, rows_b, rows_c = self._rows()
+        za, zb, zc = z[..., rows_a], z[..., rows_b], z[..., rows_c]
         a = -(self.a_min + (self.a_max - self.a_min) * torch.sigmoid(za))  # [..., m]
         low, span = b_bounds(self._low, self._span, zb)
         return a, low + span * torch.sigmoid(zb), zc  # B [..., m], m/s^2 (then the join)
 
     def q(self, obs: Tensor, action: Tensor) -> Tensor:
         """Q(s, a): obs [..., obs_dim], action [..., m] (m/s^2, ...) -> [..., 1]."""
-        a, b, c = self(obs)
-        return (a * (b - action).pow(2)).sum(-1, keepdim=True) + c
+        return q_of_heads(*self(obs), action, self.peaks)
 
     def greedy(self, obs: Tensor) -> Tensor:
-        """argmax_a Q(s, a) = B(s): [..., obs_dim] -> [..., m], inside the bounds."""
-        return self(obs)[1]
+        """argmax_a Q(s, a): B(s) (with K peaks the B of the largest C): [..., obs_dim] ->
+        [..., m], inside the bounds."""
+        _, b, c = self(obs)
+        if self.peaks == 1:
+            return b
+        return b.gather(-1, c.argmax(-1, keepdim=True))  # [..., 1]
 
     def max_value(self, obs: Tensor) -> Tensor:
-        """max over the bounded action set of Q(s, a) = Q(s, B(s)) = C(s): [..., 1]."""
-        c = head_rows(self.action_dim)[2]
-        return self.heads(obs)[..., c : c + 1]
+        """max over the bounded action set of Q(s, a) = C(s) (max_k C_k(s)): [..., 1]."""
+        return self.heads(obs)[..., self._rows()[2]].amax(-1, keepdim=True)
+
+
+def q_of_heads(a: Tensor, b: Tensor, c: Tensor, action: Tensor, peaks: int = 1) -> Tensor:
+    """Q(s, a) [..., 1] from the heads (`QuadraticQNet.forward`) and the action [..., m]: the
+    separable sum of the components, or with K peaks the largest of the K pieces."""
+    if peaks == 1:
+        return (a * (b - action).pow(2)).sum(-1, keepdim=True) + c
+    return (a * (b - action).pow(2) + c).amax(-1, keepdim=True)
 
 
 def _get(td: TensorDictBase, key: NestedKey) -> Tensor:
@@ -353,7 +400,8 @@ class QuadraticQLoss(LossModule):
             with self.target_value_network_params.to_module(
                 self.value_network, preserve_module_state=False
             ):
-                next_value = self.value_network(next_obs)[2]  # [B, 1]
+                next_value = self.value_network(next_obs)[2]  # [B, 1] ([B, K]: K peaks)
+            next_value = next_value.amax(-1, keepdim=True)  # max_k C_k; one peak: C
             not_term = (~terminated.bool()).to(next_value.dtype).reshape(next_value.shape)
             return reward.reshape(next_value.shape) + self.gamma * not_term * next_value
 
@@ -364,9 +412,10 @@ class QuadraticQLoss(LossModule):
         obs = _get(tensordict, k.observation)
         action = _get(tensordict, k.action)
         with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            a, b, c = self.value_network(obs)  # [B, m], [B, m], [B, 1]
-        action = action.reshape(b.shape).to(b.dtype)
-        pred = (a * (b - action).pow(2)).sum(-1, keepdim=True) + c  # [B, 1]
+            a, b, c = self.value_network(obs)  # [B, m], [B, m], [B, 1] ([B, K] with K peaks)
+        peaks = c.shape[-1]
+        action = action.reshape(*b.shape[:-1], b.shape[-1] // peaks).to(b.dtype)
+        pred = q_of_heads(a, b, c, action, peaks)  # [B, 1]
         target = self.td_target(tensordict)  # [B, 1]
         delta = pred - target
         weights = self._maybe_get_priority_weight(tensordict)
@@ -614,6 +663,8 @@ class FastSpec:
     """Weight of the imitation term (`FastQuadQUpdater.imitate`); 0: none, the paper's loss."""
     expectile: float = 0.5
     """tau of the TD loss's expectile (`td_weights`); 0.5: the paper's squared error."""
+    peaks: int = 1
+    """K quadratic pieces (`QuadraticQNet.peaks`); 1: the paper's network."""
 
     @property
     def action_dim(self) -> int:
@@ -621,10 +672,10 @@ class FastSpec:
 
 
 def param_layout(
-    obs_dim: int, hidden: int, action_dim: int = 1
+    obs_dim: int, hidden: int, action_dim: int = 1, peaks: int = 1
 ) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
     """Order and shapes of the :class:`QuadraticQNet` parameters in the flat buffers."""
-    n = 2 * action_dim + 1
+    n = n_heads(action_dim, peaks)
     return [
         (("hidden", "weight"), (n * hidden, obs_dim)),
         (("hidden", "bias"), (n * hidden,)),
@@ -633,12 +684,14 @@ def param_layout(
     ]
 
 
-def unflatten(flat: Tensor, obs_dim: int, hidden: int, action_dim: int = 1) -> list[Tensor]:
+def unflatten(
+    flat: Tensor, obs_dim: int, hidden: int, action_dim: int = 1, peaks: int = 1
+) -> list[Tensor]:
     """Flat parameters [..., P] -> views w1 [..., nH, d], b1 [..., nH], w2 [..., n, H],
-    b2 [..., n] with n = 2m + 1 heads (the leading dimensions, e.g. seeds, kept)."""
+    b2 [..., n] with n = `n_heads` (the leading dimensions, e.g. seeds, kept)."""
     out, o = [], 0
     lead = flat.shape[:-1]
-    for _, shape in param_layout(obs_dim, hidden, action_dim):
+    for _, shape in param_layout(obs_dim, hidden, action_dim, peaks):
         n = math.prod(shape)
         out.append(flat[..., o : o + n].view(*lead, *shape))
         o += n
@@ -752,6 +805,76 @@ def fast_chunk(
     return torch.stack(losses)
 
 
+def fast_chunk_peaks(
+    spec: FastSpec,
+    flat: Tensor,
+    target_flat: Tensor,
+    exp_avg: Tensor,
+    exp_avg_sq: Tensor,
+    adam_scalars: Tensor,
+    rows: Tensor,
+) -> Tensor:
+    """`fast_chunk` for a network of K = `spec.peaks` > 1 pieces (one action component):
+    Q(s, a) = max_k A_k (B_k - a)^2 + C_k, the target max_k C_target_k(s'). The TD error's
+    gradient reaches only the piece that is largest at the replayed action (the envelope's
+    derivative). Same arguments and return as `fast_chunk` (no imitation)."""
+    d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
+    n = 3 * kp
+    rows_a, rows_b, rows_c = peak_rows(kp)
+    k, bsz = rows.shape[0], rows.shape[1]
+    obs = rows[..., :d]  # [k, B, d]
+    act = rows[..., d : d + 1]  # [k, B, 1]
+    rew = rows[..., d + 1]  # [k, B]
+    not_term = 1.0 - rows[..., d + 2]  # [k, B]
+    next_obs = rows[..., d + 3 :]  # [k, B, d]
+
+    # Target: max_k C_target_k(s'); only the C heads are evaluated.
+    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, 1, kp)
+    c_sl = slice(2 * kp * hd, n * hd)
+    h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, K H]
+    h_next = h_next.view(k, bsz, kp, hd)
+    v_next = ((h_next * tw2[rows_c]).sum(-1) + tb2[rows_c]).amax(-1)  # [k, B]
+    y = rew + spec.gamma * not_term * v_next  # [k, B]
+
+    w1, b1, w2, b2 = unflatten(flat, d, hd, 1, kp)
+    losses = []
+    for i in range(k):
+        x = obs[i]  # [B, d]
+        pre = torch.addmm(b1, x, w1.t())  # [B, 3K H]
+        h = torch.relu(pre).view(bsz, n, hd)  # [B, 3K, H]
+        z = (h * w2).sum(-1) + b2  # [B, 3K]
+        s_a = torch.sigmoid(z[:, rows_a])  # [B, K]
+        s_b = torch.sigmoid(z[:, rows_b])  # [B, K]
+        big_a = -(spec.a_min + spec.a_span * s_a)  # [B, K]
+        diff = spec.low + spec.span * s_b - act[i]  # B_k(s) - a, [B, K]
+        q_k = big_a * diff * diff + z[:, rows_c]  # [B, K]
+        q, best = q_k.max(-1)  # [B]
+        top = (torch.arange(kp, device=rows.device) == best.unsqueeze(-1)).to(q.dtype)  # [B, K]
+        delta = q - y[i]
+        w = td_weights(spec, delta)
+        wd = delta if w is None else w * delta
+        losses.append((wd * delta).mean())
+        g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
+        dz = torch.cat(
+            [
+                g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
+                g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b),
+                g,
+            ],
+            dim=-1,
+        )  # [B, 3K]
+        dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [3K, H]
+        db2 = dz.sum(0)  # [3K]
+        dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, n * hd), 0.0)
+        dw1_t = torch.mm(x.t(), dpre)  # [d, 3K H]
+        grad = torch.cat([dw1_t.t().reshape(-1), dpre.sum(0), dw2.reshape(-1), db2])  # [P]
+        exp_avg.lerp_(grad, 1.0 - spec.beta1)
+        exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
+        denom = exp_avg_sq.sqrt() / adam_scalars[i, 1] + spec.eps
+        flat.sub_(adam_scalars[i, 0] * exp_avg / denom)
+    return torch.stack(losses)
+
+
 COMPILE_NOTICE = (
     "marlmerge: compiling the update step with torch.compile (first run: up to a minute; "
     "later runs load it from the cache)..."
@@ -855,6 +978,7 @@ class FastQuadQUpdater:
             eps=float(eps),
             extra=tuple((lo, hi - lo) for lo, hi in net.extra_bounds),
             expectile=float(expectile),
+            peaks=net.peaks,
         )
         # This object owns the target updates: silence torchrl's "no updater" warning.
         loss._has_update_associated["value_network"] = True
@@ -869,7 +993,8 @@ class FastQuadQUpdater:
         self._build_chunk()
 
     def _build_chunk(self) -> None:
-        self._eager_chunk = functools.partial(fast_chunk, self.spec)
+        chunk = fast_chunk if self.spec.peaks == 1 else fast_chunk_peaks
+        self._eager_chunk = functools.partial(chunk, self.spec)
         self._fn: Callable[..., Tensor] = self._eager_chunk
         self.compile_time_s: float | None = None
         if self._compile_kwargs is not None:
@@ -882,6 +1007,8 @@ class FastQuadQUpdater:
         the teacher's command wherever it differs from B(s) by more than `TEACHER_CHANGED`."""
         if weight <= 0.0:
             raise ValueError(f"imitation weight must be > 0, got {weight}")
+        if self.spec.peaks > 1:
+            raise ValueError(f"imitation takes a network of one peak, got {self.spec.peaks}")
         self.teacher = teacher
         self.spec = replace(self.spec, imitation=float(weight))
         self._build_chunk()
@@ -902,7 +1029,7 @@ class FastQuadQUpdater:
         """Copy ``params`` into one flat buffer [P] (``flat``, e.g. a row of S seeds' stacked
         buffer, or a new one) and re-point each tensor to a view of it."""
         s = self.spec
-        layout = param_layout(s.obs_dim, s.hidden, s.action_dim)
+        layout = param_layout(s.obs_dim, s.hidden, s.action_dim, s.peaks)
         tensors = [params.get(key) for key, _ in layout]
         for t, (key, shape) in zip(tensors, layout, strict=True):
             if tuple(t.shape) != shape:
@@ -910,7 +1037,7 @@ class FastQuadQUpdater:
         values = torch.cat([t.detach().reshape(-1) for t in tensors])
         flat = values if flat is None else flat.copy_(values)
         for t, view in zip(
-            tensors, unflatten(flat, s.obs_dim, s.hidden, s.action_dim), strict=True
+            tensors, unflatten(flat, s.obs_dim, s.hidden, s.action_dim, s.peaks), strict=True
         ):
             t.data = view
         return flat

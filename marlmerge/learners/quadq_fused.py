@@ -130,8 +130,10 @@ class FusedQuadQUpdates:
         teachers = {u.teacher is None for u in updaters}
         if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1 or len(teachers) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
-        if next(iter(specs)).action_dim != 1:
-            raise ValueError("fused updates of several seeds take one action component")
+        if next(iter(specs)).action_dim != 1 or next(iter(specs)).peaks != 1:
+            raise ValueError(
+                "fused updates of several seeds take one action component and one peak"
+            )
         self.updaters = list(updaters)
         self.k = self.updaters[0].k
         us = self.updaters

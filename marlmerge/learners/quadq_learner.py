@@ -44,6 +44,7 @@ class QuadQLearner(Learner):
             then moved, so every device starts from the same weights).
         expectile: tau of the TD loss (`marlmerge.learners.quadq.td_weights`; fast paths only);
             0.5: the paper's squared error.
+        peaks: K quadratic pieces, Q the largest (`QuadraticQNet`); 1: the paper's network.
     """
 
     algorithm = "quadq"
@@ -67,6 +68,7 @@ class QuadQLearner(Learner):
         device: torch.device | str = "cpu",
         extra_bounds: tuple[tuple[float, float], ...] = (),
         expectile: float = 0.5,
+        peaks: int = 1,
     ) -> None:
         if expectile != 0.5 and update_path == "torchrl":
             raise ValueError(
@@ -78,7 +80,7 @@ class QuadQLearner(Learner):
         self.device = torch.device(device)
         self.net = QuadraticQNet(
             obs_dim, hidden, action_low=low, action_high=high, generator=init,
-            extra_bounds=extra_bounds,
+            extra_bounds=extra_bounds, peaks=peaks,
         )  # fmt: skip
         if init_weights is not None:  # before the loss module copies them into its target
             self.net.load_state_dict(init_weights)
@@ -194,4 +196,6 @@ class QuadQLearner(Learner):
         }
         if self.net.extra_bounds:
             state["extra_bounds"] = [list(b) for b in self.net.extra_bounds]
+        if self.net.peaks > 1:
+            state["peaks"] = self.net.peaks
         return state

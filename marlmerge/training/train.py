@@ -140,6 +140,7 @@ def make_learner(
         sample_generator=sample_gen,
         device=cfg.device,
         expectile=cfg.td_expectile,
+        peaks=cfg.peaks,
     )
 
 
