@@ -104,6 +104,10 @@ HELDOUT14_SEED = 20261219
 """The seed the fourteenth held-out set (`envs/heldout14_*`) was drawn with: committed before
 anyone ran a policy on it, after the thirteenth set had judged attempt 13, for the round that
 next tunes a recipe."""
+HELDOUT15_SEED = 20261220
+"""The seed the fifteenth held-out set (`envs/heldout15_*`) was drawn with: committed before
+anyone ran a policy on it, while the fourteenth set was still unseen, for the round that next
+tunes a recipe."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -117,6 +121,7 @@ HELDOUT_SETS = {
     "heldout12": HELDOUT12_SEED,
     "heldout13": HELDOUT13_SEED,
     "heldout14": HELDOUT14_SEED,
+    "heldout15": HELDOUT15_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
