@@ -82,6 +82,22 @@ def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_run_of_two_peaks_resumes_exactly_and_saves_a_policy_of_two_peaks(tmp_path):
+    from marlmerge.learners.loading import load_policy
+
+    cfg = TrainConfig(**{**TINY, "peaks": 2, "eval_episodes": 0})
+    train(cfg, tmp_path / "a", progress=False)
+    train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=5_120)
+    train(cfg, tmp_path / "b", resume=True, progress=False)
+    assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
+    saved = files.load(tmp_path / "a" / "policy.pt")["policy_state"]
+    assert saved["peaks"] == 2 and saved["net"]["head_bias"].shape == (6,)
+    obs = torch.randn(5, 7, generator=torch.Generator().manual_seed(0))
+    command = load_policy(tmp_path / "a")(obs)  # [5, 1], the B of the larger C
+    assert command.shape == (5, 1) and bool(((command > -4.5) & (command < 2.5)).all())
+
+
+@pytest.mark.slow
 def test_torchrl_update_path_runs(tmp_path):
     cfg = TrainConfig(
         **{**TINY, "update_path": "torchrl", "total_sim_steps": 2_048, "eval_episodes": 4}

@@ -103,7 +103,8 @@ the round that next tunes a recipe. It judged `hardened_join` with collisions at
 HELDOUT14_SEED = 20261219
 """The seed the fourteenth held-out set (`envs/heldout14_*`) was drawn with: committed before
 anyone ran a policy on it, after the thirteenth set had judged attempt 13, for the round that
-next tunes a recipe."""
+next tunes a recipe. It judged a Q of three peaks on `trainers/hardened_join.toml` (`peaks = 3`;
+docs/stress.md, attempt 14)."""
 HELDOUT15_SEED = 20261220
 """The seed the fifteenth held-out set (`envs/heldout15_*`) was drawn with: committed before
 anyone ran a policy on it, while the fourteenth set was still unseen, for the round that next
