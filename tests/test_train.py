@@ -97,6 +97,13 @@ def test_a_run_of_two_peaks_resumes_exactly_and_saves_a_policy_of_two_peaks(tmp_
     assert command.shape == (5, 1) and bool(((command > -4.5) & (command < 2.5)).all())
 
 
+def test_several_peaks_with_a_chosen_join_are_refused_before_anything_is_written(tmp_path):
+    cfg = TrainConfig(**{**TINY, "peaks": 2, "scenario": "chosen_join"})
+    with pytest.raises(ValueError, match="peaks = 2 shapes a Q of one action component"):
+        train(cfg, tmp_path / "r", progress=False)
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.slow
 def test_torchrl_update_path_runs(tmp_path):
     cfg = TrainConfig(

@@ -243,6 +243,11 @@ def train(
     if flowing:
         check_ramp_training(cfg, scen)
     shield = make_train_shield(cfg, scen)  # refused before anything is written
+    if cfg.peaks > 1 and scen.ego.chooses_join:
+        raise ValueError(
+            f"peaks = {cfg.peaks} shapes a Q of one action component; scenario "
+            f"{cfg.scenario!r} sets ego.join = {scen.ego.join!r}, a second one: use peaks = 1"
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
