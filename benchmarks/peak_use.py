@@ -16,34 +16,18 @@ import argparse
 import torch
 
 from marlmerge.config.presets import resolve_config
-from marlmerge.io.policy_file import read_policy
-from marlmerge.learners.quadq import QuadraticQNet
+from marlmerge.learners.loading import load_quadq_net
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 BRAKE_MPS2 = -1.0
 """A greedy command below this (m/s^2) counts as a brake."""
 
 
-def load_net(run: str) -> QuadraticQNet:
-    """The quadq network of a run folder or policy file, with its pieces."""
-    path = run if run.endswith(".pt") else f"{run}/policy.pt"
-    saved = read_policy(path, "ego")
-    if saved["algorithm"] != "quadq":
-        raise ValueError(f"{path}: a quadq policy is needed, got {saved['algorithm']!r}")
-    state, (lo, hi) = saved["policy_state"], saved["action_bounds_mps2"]
-    net = QuadraticQNet(
-        saved["observation"]["size"], state["hidden"], action_low=lo, action_high=hi,
-        peaks=state.get("peaks", 1),
-    )  # fmt: skip
-    net.load_state_dict(state["net"])
-    return net.eval()
-
-
 @torch.no_grad()
 def peak_use(run: str, scenario: str, worlds: int, decisions: int, seed: int) -> dict:
     """Shares of the greedy decisions per piece [K], the brake share of each piece's greedy
     commands [K] and each piece's mean B [K] (m/s^2), over `worlds` x `decisions` decisions."""
-    net = load_net(run)
+    net = load_quadq_net(run)
     env = BatchedMergeEnv(resolve_config(scenario), num_worlds=worlds, seed=seed)
     k_n = net.peaks
     greedy, brakes, b_sum = torch.zeros(k_n), torch.zeros(k_n), torch.zeros(k_n)

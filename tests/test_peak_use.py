@@ -43,4 +43,4 @@ def test_a_policy_of_another_algorithm_is_refused_naming_the_file(tmp_path):
     state = {"net": {}, "hidden": 8, "layers": 2}
     write_policy(tmp_path / "t.pt", "ego", "td3", (-4.5, 2.5), state, {}, to_dict(ScenarioConfig()))
     with pytest.raises(ValueError, match="t.pt: a quadq policy is needed, got 'td3'"):
-        pu.load_net(str(tmp_path / "t.pt"))
+        pu.peak_use(str(tmp_path / "t.pt"), "default", 4, 6, 0)

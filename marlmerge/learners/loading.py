@@ -18,7 +18,7 @@ from marlmerge.learners.dqn import DQNLearner, EpsilonGreedy, dqn_action_levels
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
 from marlmerge.learners.td3 import ScaledTanh, TD3Learner
 
-__all__ = ["ALGORITHMS", "load_policy", "load_scenario_of", "make_learner"]
+__all__ = ["ALGORITHMS", "load_policy", "load_quadq_net", "load_scenario_of", "make_learner"]
 
 
 def make_learner(cfg: Any, low: float, high: float, obs_dim: int = OBS_DIM) -> BaselineLearner:
@@ -88,6 +88,28 @@ def load_scenario_of(path: str | Path):
     return scenario_of_saved(read_policy(path, "ego"))
 
 
+def quadq_net(saved: dict, path: str | Path) -> QuadraticQNet:
+    """The quadratic-Q network of a read quadq policy file (`read_policy`), its weights loaded,
+    in eval mode: its action components and pieces as saved."""
+    state, (lo, hi) = saved["policy_state"], saved["action_bounds_mps2"]
+    extra = tuple(tuple(b) for b in state.get("extra_bounds", ()))  # the join, if chosen
+    net = QuadraticQNet(
+        saved["observation"]["size"], state["hidden"], action_low=lo, action_high=hi,
+        extra_bounds=extra, peaks=state.get("peaks", 1),  # the envelope's pieces, if several
+    )  # fmt: skip
+    load_weights(net, state["net"], path)
+    return net.eval()
+
+
+def load_quadq_net(path: str | Path) -> QuadraticQNet:
+    """The network of a saved quadq policy (a ``policy.pt`` or a run folder holding one), for
+    reading its heads A, B and C; another algorithm is a `ValueError` naming the file."""
+    saved = read_policy(path, "ego")
+    if saved["algorithm"] != "quadq":
+        raise ValueError(f"{path}: a quadq policy is needed, got {saved['algorithm']!r}")
+    return quadq_net(saved, path)
+
+
 def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     """Greedy policy of a saved run, any algorithm: ``obs [B, 7] -> acceleration [B, 1]`` m/s^2
     (a quadq policy of `ego.join = "chosen"`: [B, 2], acceleration and join).
@@ -100,13 +122,7 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     lo, hi = saved["action_bounds_mps2"]
     obs_dim = saved["observation"]["size"]
     if algorithm == "quadq":
-        extra = tuple(tuple(b) for b in state.get("extra_bounds", ()))  # the join, if chosen
-        net = QuadraticQNet(
-            obs_dim, state["hidden"], action_low=lo, action_high=hi, extra_bounds=extra,
-            peaks=state.get("peaks", 1),  # the pieces of the envelope, if more than one
-        )  # fmt: skip
-        load_weights(net, state["net"], path)
-        net.eval()
+        net = quadq_net(saved, path)
 
         @torch.no_grad()
         def quadq_policy(obs: Tensor) -> Tensor:
