@@ -721,6 +721,23 @@ def td_weights(spec: FastSpec, delta: Tensor) -> Tensor | None:
     return torch.where(delta > 0, 2.0 * (1.0 - spec.expectile), 2.0 * spec.expectile)
 
 
+def adam_step(
+    spec: FastSpec,
+    flat: Tensor,
+    exp_avg: Tensor,
+    exp_avg_sq: Tensor,
+    grad: Tensor,
+    scalars: Tensor,
+) -> None:
+    """One Adam step in place (torch.optim.Adam semantics: no weight decay, no amsgrad) on
+    ``flat``, ``exp_avg``, ``exp_avg_sq`` [..., P] from ``grad`` [..., P]; ``scalars`` [2] =
+    (lr / (1 - beta1^t), sqrt(1 - beta2^t)) of this update (`FastQuadQUpdater.adam_scalars`)."""
+    exp_avg.lerp_(grad, 1.0 - spec.beta1)
+    exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
+    denom = exp_avg_sq.sqrt() / scalars[1] + spec.eps
+    flat.sub_(scalars[0] * exp_avg / denom)
+
+
 def fast_chunk(
     spec: FastSpec,
     flat: Tensor,
@@ -797,11 +814,7 @@ def fast_chunk(
         dw1_t = torch.mm(x.t(), dpre)  # [d, nH]; 2-3x faster than mm(dpre.t(), x) here
         db1 = dpre.sum(0)  # [nH]
         grad = torch.cat([dw1_t.t().reshape(-1), db1, dw2.reshape(-1), db2])  # [P]
-        # Adam (torch.optim.Adam semantics: no weight decay, no amsgrad).
-        exp_avg.lerp_(grad, 1.0 - spec.beta1)
-        exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
-        denom = exp_avg_sq.sqrt() / adam_scalars[i, 1] + spec.eps
-        flat.sub_(adam_scalars[i, 0] * exp_avg / denom)
+        adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
     return torch.stack(losses)
 
 
@@ -868,10 +881,7 @@ def fast_chunk_peaks(
         dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, n * hd), 0.0)
         dw1_t = torch.mm(x.t(), dpre)  # [d, 3K H]
         grad = torch.cat([dw1_t.t().reshape(-1), dpre.sum(0), dw2.reshape(-1), db2])  # [P]
-        exp_avg.lerp_(grad, 1.0 - spec.beta1)
-        exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
-        denom = exp_avg_sq.sqrt() / adam_scalars[i, 1] + spec.eps
-        flat.sub_(adam_scalars[i, 0] * exp_avg / denom)
+        adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
     return torch.stack(losses)
 
 

@@ -36,6 +36,7 @@ from marlmerge.learners.quadq import (
     HEAD_C,
     FastQuadQUpdater,
     FastSpec,
+    adam_step,
     notice_if_slow,
     td_weights,
     unflatten,
@@ -102,10 +103,7 @@ def fused_chunk(
             [dw1_t.transpose(1, 2).reshape(s_, -1), dpre.sum(1), dw2.reshape(s_, -1), db2], -1
         )  # [S, P]
         grads.append(grad)
-        exp_avg.lerp_(grad, 1.0 - spec.beta1)
-        exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
-        denom = exp_avg_sq.sqrt() / adam_scalars[i, 1] + spec.eps
-        flat.sub_(adam_scalars[i, 0] * exp_avg / denom)
+        adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
     return torch.stack(losses, -1), torch.stack(grads, 1)
 
 
