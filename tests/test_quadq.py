@@ -344,6 +344,59 @@ def test_fast_path_with_three_peaks_matches_lossmodule_and_adam():
     _fast_vs_reference(k=5, peaks=3)
 
 
+def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_errors():
+    share, k = 0.2, 3
+    rep = _filled_replay(300, _gen(21))
+    rows = rep.sample((k, 32), _gen(22))
+    fast_loss, ref_loss = (qq.QuadraticQLoss(_net(7, hidden=16, peaks=3), gamma=0.95) for _ in "ab")
+    for loss in (fast_loss, ref_loss):
+        _perturb_target(loss, _gen(23))
+    fast = qq.FastQuadQUpdater(
+        fast_loss, rep, generator=_gen(0), updates_per_call=k, target_update_period=10 * k,
+        peak_share=share,
+    )  # fmt: skip
+    net = ref_loss.value_network
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    td_losses = []
+    for i in range(k):
+        td = rep.to_tensordict(rows[i])
+        a, b, c = net(td["observation"])  # [B, 3] each
+        q_k = a * (b - td["action"]) ** 2 + c  # [B, 3]
+        q, best = q_k.max(-1)
+        y = ref_loss.td_target(td)[:, 0]  # [B]
+        losing = torch.ones_like(q_k).scatter(-1, best[:, None], 0.0)
+        total = (q - y).pow(2).mean() + share * (losing * (q_k - y[:, None]) ** 2).sum(-1).mean()
+        td_losses.append((q - y).pow(2).mean().detach())
+        opt.zero_grad()
+        total.backward()
+        opt.step()
+    torch.testing.assert_close(fast.step(rows), torch.stack(td_losses), rtol=1e-5, atol=1e-6)
+    for (name, p_fast), p_ref in zip(
+        fast_loss.value_network.named_parameters(), net.parameters(), strict=True
+    ):
+        torch.testing.assert_close(p_fast, p_ref, rtol=1e-5, atol=1e-6, msg=name)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.1])
+def test_a_piece_that_never_wins_learns_only_with_a_peak_share(share):
+    net = _net(9, hidden=16, peaks=2)
+    with torch.no_grad():
+        net.head_bias[5] -= 1e3  # piece 1's C far below: it never wins at any command
+    loss = qq.QuadraticQLoss(net, gamma=0.95)
+    rep = _filled_replay(200, _gen(24))
+    fast = qq.FastQuadQUpdater(
+        loss, rep, generator=_gen(0), updates_per_call=5, target_update_period=50,
+        peak_share=share,
+    )  # fmt: skip
+    before = net.head_bias.detach().clone()
+    fast.step(rep.sample((5, 32), _gen(25)))
+    moved = (net.head_bias.detach() - before).abs()  # rows A_0 A_1 B_0 B_1 C_0 C_1
+    assert moved[[0, 2, 4]].min() > 0  # the winning piece learns either way
+    assert (moved[[1, 3, 5]].min() > 0) == (share > 0)
+    with pytest.raises(ValueError, match=r"peak_share = 0.1 .*\(this network has 1\)"):
+        qq.FastQuadQUpdater(qq.QuadraticQLoss(_net()), None, generator=_gen(0), peak_share=0.1)
+
+
 def test_one_peak_is_the_paper_network():
     paper, one = _net(3), _net(3, peaks=1)
     assert one.n_heads == 3 and paper.state_dict().keys() == one.state_dict().keys()
@@ -563,6 +616,9 @@ def test_an_imitation_weight_must_be_positive():
         ({"peaks": 0}, r"peaks must be in \[1, 8\], got 0"),
         ({"peaks": 2, "algorithm": "td3"}, r"peaks = 2 .* got 'td3' and 0.0"),
         ({"peaks": 2, "shield": "shield", "shield_imitation": 1.0}, r"got 'quadq' and 1.0"),
+        ({"peak_share": 1.5, "peaks": 2}, r"peak_share must be in \[0, 1\], got 1.5"),
+        ({"peak_share": 0.1}, r"peak_share = 0.1 .* got peaks = 1 on"),
+        ({"peak_share": 0.1, "peaks": 2, "update_path": "torchrl"}, r"peaks = 2 on 'torchrl'"),
     ],
 )
 def test_bad_expectile_and_peaks_settings_are_named(values, message):

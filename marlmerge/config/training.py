@@ -245,6 +245,12 @@ class TrainConfig(RunConfig):
     at once (brake and let a vehicle pass, or go), where one quadratic holds one. 1: the
     paper's network. quadq with one action component, no `shield_imitation`, seeds trained one
     by one (not `--seeds`)."""
+    peak_share: float = num(0.0, 0.0, 1.0)
+    """With `peaks` > 1: the weight of each losing piece's own squared TD error at the replayed
+    command. The envelope's error reaches only the piece that is largest there, so a piece
+    that never wins never learns and the envelope can collapse to one piece; with a share, every
+    piece follows the returns and can come back. 0: the envelope's error alone. quadq with
+    `peaks` > 1 on the fast or compiled path."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -296,6 +302,12 @@ class TrainConfig(RunConfig):
                     f"peaks = {self.peaks} shapes the quadratic Q without imitation: algorithm "
                     f"= 'quadq' and shield_imitation = 0, got {self.algorithm!r} and "
                     f"{self.shield_imitation}",
+                ),
+                (
+                    self.peak_share == 0.0 or (self.peaks > 1 and self.update_path != "torchrl"),
+                    f"peak_share = {self.peak_share} weighs the losing pieces of a quadratic Q "
+                    f"of several peaks on the fast path: peaks > 1 with update_path 'fast' or "
+                    f"'compiled', got peaks = {self.peaks} on {self.update_path!r}",
                 ),
                 (
                     not self.shield_drives or self.algorithm != "dqn",

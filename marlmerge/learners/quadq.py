@@ -665,6 +665,9 @@ class FastSpec:
     """tau of the TD loss's expectile (`td_weights`); 0.5: the paper's squared error."""
     peaks: int = 1
     """K quadratic pieces (`QuadraticQNet.peaks`); 1: the paper's network."""
+    peak_share: float = 0.0
+    """With K > 1 pieces: weight of each losing piece's own squared error to the same target
+    (`fast_chunk_peaks`); 0: only the envelope's error, the winning piece alone learns."""
 
     @property
     def action_dim(self) -> int:
@@ -830,7 +833,10 @@ def fast_chunk_peaks(
     """`fast_chunk` for a network of K = `spec.peaks` > 1 pieces (one action component):
     Q(s, a) = max_k A_k (B_k - a)^2 + C_k, the target max_k C_target_k(s'). The TD error's
     gradient reaches only the piece that is largest at the replayed action (the envelope's
-    derivative). Same arguments and return as `fast_chunk` (no imitation)."""
+    derivative). With `spec.peak_share` = w > 0 the loss gains w (q_k(s, a) - y)^2 for every
+    other piece k, so a piece that never wins still learns and can come back into the envelope
+    (a piece that never wins otherwise never moves). Same arguments and return as `fast_chunk`
+    (no imitation); the losses returned stay the TD losses."""
     d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
     n = 3 * kp
     rows_a, rows_b, rows_c = peak_rows(kp)
@@ -868,6 +874,8 @@ def fast_chunk_peaks(
         wd = delta if w is None else w * delta
         losses.append((wd * delta).mean())
         g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
+        if spec.peak_share > 0.0:  # the losing pieces' own errors
+            g = g + (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y[i].unsqueeze(-1))
         dz = torch.cat(
             [
                 g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
@@ -940,6 +948,8 @@ class FastQuadQUpdater:
         generator: RNG for sampling minibatch indices (required: no global RNG).
         expectile: tau of the TD loss (`td_weights`); 0.5: the squared error of
             :class:`QuadraticQLoss`.
+        peak_share: with several peaks, the weight of each losing piece's own TD error
+            (`fast_chunk_peaks`); 0: the envelope's error alone.
     """
 
     def __init__(
@@ -957,10 +967,16 @@ class FastQuadQUpdater:
         compile: bool = False,
         compile_kwargs: dict | None = None,
         expectile: float = 0.5,
+        peak_share: float = 0.0,
     ) -> None:
         net = loss.value_network
         if not isinstance(net, QuadraticQNet):
             raise TypeError("FastQuadQUpdater needs a QuadraticQLoss built on a QuadraticQNet")
+        if peak_share < 0.0 or (peak_share > 0.0 and net.peaks == 1):
+            raise ValueError(
+                f"peak_share = {peak_share} weighs the losing pieces of a Q of several peaks: "
+                f"it must be >= 0, and 0 with one peak (this network has {net.peaks})"
+            )
         if target_update_period % updates_per_call != 0:
             raise ValueError("updates_per_call must divide target_update_period")
         if replay is not None and replay.obs_dim != net.obs_dim:
@@ -989,6 +1005,7 @@ class FastQuadQUpdater:
             extra=tuple((lo, hi - lo) for lo, hi in net.extra_bounds),
             expectile=float(expectile),
             peaks=net.peaks,
+            peak_share=float(peak_share),
         )
         # This object owns the target updates: silence torchrl's "no updater" warning.
         loss._has_update_associated["value_network"] = True

@@ -45,6 +45,8 @@ class QuadQLearner(Learner):
         expectile: tau of the TD loss (`marlmerge.learners.quadq.td_weights`; fast paths only);
             0.5: the paper's squared error.
         peaks: K quadratic pieces, Q the largest (`QuadraticQNet`); 1: the paper's network.
+        peak_share: with several peaks, the weight of each losing piece's own TD error
+            (`marlmerge.learners.quadq.fast_chunk_peaks`; fast paths only); 0: none.
     """
 
     algorithm = "quadq"
@@ -69,6 +71,7 @@ class QuadQLearner(Learner):
         extra_bounds: tuple[tuple[float, float], ...] = (),
         expectile: float = 0.5,
         peaks: int = 1,
+        peak_share: float = 0.0,
     ) -> None:
         if expectile != 0.5 and update_path == "torchrl":
             raise ValueError(
@@ -92,6 +95,7 @@ class QuadQLearner(Learner):
             lr=lr, target_update_period=target_update_period, updates_per_call=updates_per_call
         )
         self.expectile = float(expectile)
+        self.peak_share = float(peak_share)
         self.sample_generator = sample_generator
         self._imitation: tuple[Teacher, float] | None = None
         self._build_updater()
@@ -125,6 +129,7 @@ class QuadQLearner(Learner):
             target_update_period=s["target_update_period"],
             compile=self.update_path == "compiled",
             expectile=self.expectile,
+            peak_share=self.peak_share,
         )
         if self._imitation is not None:
             self.fast.imitate(*self._imitation)

@@ -141,6 +141,7 @@ def make_learner(
         device=cfg.device,
         expectile=cfg.td_expectile,
         peaks=cfg.peaks,
+        peak_share=cfg.peak_share,
     )
 
 
