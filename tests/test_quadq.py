@@ -344,11 +344,14 @@ def test_fast_path_with_three_peaks_matches_lossmodule_and_adam():
     _fast_vs_reference(k=5, peaks=3)
 
 
-def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_errors():
+@pytest.mark.parametrize("bands", [False, True])
+def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_errors(bands):
     share, k = 0.2, 3
     rep = _filled_replay(300, _gen(21))
     rows = rep.sample((k, 32), _gen(22))
-    fast_loss, ref_loss = (qq.QuadraticQLoss(_net(7, hidden=16, peaks=3), gamma=0.95) for _ in "ab")
+    fast_loss, ref_loss = (
+        qq.QuadraticQLoss(_net(7, hidden=16, peaks=3, peak_bands=bands), gamma=0.95) for _ in "ab"
+    )
     for loss in (fast_loss, ref_loss):
         _perturb_target(loss, _gen(23))
     fast = qq.FastQuadQUpdater(
@@ -395,6 +398,26 @@ def test_a_piece_that_never_wins_learns_only_with_a_peak_share(share):
     assert (moved[[1, 3, 5]].min() > 0) == (share > 0)
     with pytest.raises(ValueError, match=r"peak_share = 0.1 .*\(this network has 1\)"):
         qq.FastQuadQUpdater(qq.QuadraticQLoss(_net()), None, generator=_gen(0), peak_share=0.1)
+
+
+def test_banded_pieces_keep_their_commands_apart():
+    banded, spread = _net(3, peaks=3, peak_bands=True), _net(3, peaks=3)
+    obs = torch.randn(200, OBS_DIM, generator=_gen(26)) * 3.0
+    edges = torch.linspace(LOW, HIGH, 4)  # the three bands' edges, m/s^2
+    b = banded(obs)[1]  # [200, 3]
+    assert ((b > edges[:-1]) & (b < edges[1:])).all()
+    # the bands' middles are where the unbanded pieces start: the same first commands
+    torch.testing.assert_close(
+        banded.head_bias[3:6], torch.zeros(3), msg="B starts in the middle of its band"
+    )
+    mid = (edges[:-1] + edges[1:]) / 2
+    with torch.no_grad():
+        for net in (banded, spread):
+            net.head_weight[3:6] = 0.0
+    torch.testing.assert_close(banded(obs[:1])[1][0], mid)
+    torch.testing.assert_close(spread(obs[:1])[1][0], mid)
+    with pytest.raises(ValueError, match="peak_bands splits the command range .* peaks > 1"):
+        _net(peak_bands=True)
 
 
 def test_one_peak_is_the_paper_network():
@@ -619,6 +642,7 @@ def test_an_imitation_weight_must_be_positive():
         ({"peak_share": 1.5, "peaks": 2}, r"peak_share must be in \[0, 1\], got 1.5"),
         ({"peak_share": 0.1}, r"peak_share = 0.1 .* got peaks = 1 on"),
         ({"peak_share": 0.1, "peaks": 2, "update_path": "torchrl"}, r"peaks = 2 on 'torchrl'"),
+        ({"peak_bands": True, "peaks": 2}, r"peak_bands = true .* got peak_share = 0.0 with"),
     ],
 )
 def test_bad_expectile_and_peaks_settings_are_named(values, message):

@@ -104,6 +104,14 @@ def test_a_torch_file_without_the_policy_keys_names_the_file_and_the_key(
         ({"algorithm": "ppo"}, "unknown ego algorithm 'ppo'"),
         ({"policy_state": {"net": {}}}, "lacks 'hidden'"),
         ({"policy_state": {"net": {}, "hidden": 8, "peaks": 0}}, "peaks must be an integer >= 1"),
+        (
+            {"policy_state": {"net": {}, "hidden": 8, "peak_bands": True}},
+            "peak_bands must be true or false, and true only with peaks > 1; got True with peaks",
+        ),
+        (
+            {"policy_state": {"net": {}, "hidden": 8, "peaks": 2, "peak_bands": "yes"}},
+            "policy_state.peak_bands must be true or false",
+        ),
         ({"action_bounds_mps2": [2.0, -1.0]}, "action_bounds_mps2"),
         ({"scenario": {"road": {"lane_width_m": -1.0}}}, "scenario is not valid"),
         ({"observation": "paper"}, "holds a str, not a dict"),
@@ -139,6 +147,19 @@ def test_a_policy_of_several_peaks_loads_as_saved_and_a_wrong_count_names_the_fi
     files.save(saved, tmp_path / "p.pt")
     with pytest.raises(ValueError, match="p.pt: the saved weights do not fit the network"):
         load_policy(tmp_path / "p.pt")
+
+
+def test_a_policy_of_banded_pieces_loads_with_its_bands(tmp_path):
+    from marlmerge.learners.loading import load_policy
+
+    net = QuadraticQNet(7, 8, generator=torch.Generator().manual_seed(2), peaks=2, peak_bands=True)
+    state = {"net": net.state_dict(), "hidden": 8, "peaks": 2, "peak_bands": True}
+    write_policy(tmp_path / "p.pt", "ego", "quadq", (-4.5, 2.5), state, {}, SCEN)
+    obs = torch.randn(9, 7, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(load_policy(tmp_path / "p.pt")(obs), net.greedy(obs))
+    unbanded = QuadraticQNet(7, 8, peaks=2)
+    unbanded.load_state_dict(net.state_dict())  # same weights, B over the whole range
+    assert not torch.equal(unbanded.greedy(obs), net.greedy(obs))
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])

@@ -82,16 +82,19 @@ def test_killed_run_resumes_and_continues_the_same_curves(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_run_of_two_peaks_resumes_exactly_and_saves_a_policy_of_two_peaks(tmp_path):
+def test_a_run_of_two_banded_peaks_resumes_exactly_and_saves_a_policy_of_them(tmp_path):
     from marlmerge.learners.loading import load_policy
 
-    cfg = TrainConfig(**{**TINY, "peaks": 2, "eval_episodes": 0})
+    cfg = TrainConfig(
+        **{**TINY, "peaks": 2, "peak_share": 0.1, "peak_bands": True, "eval_episodes": 0}
+    )
     train(cfg, tmp_path / "a", progress=False)
     train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=5_120)
     train(cfg, tmp_path / "b", resume=True, progress=False)
     assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
     saved = files.load(tmp_path / "a" / "policy.pt")["policy_state"]
     assert saved["peaks"] == 2 and saved["net"]["head_bias"].shape == (6,)
+    assert saved["peak_bands"] is True
     obs = torch.randn(5, 7, generator=torch.Generator().manual_seed(0))
     command = load_policy(tmp_path / "a")(obs)  # [5, 1], the B of the larger C
     assert command.shape == (5, 1) and bool(((command > -4.5) & (command < 2.5)).all())

@@ -251,6 +251,11 @@ class TrainConfig(RunConfig):
     that never wins never learns and the envelope can collapse to one piece; with a share, every
     piece follows the returns and can come back. 0: the envelope's error alone. quadq with
     `peaks` > 1 on the fast or compiled path."""
+    peak_bands: bool = False
+    """With `peaks` = K > 1: piece k's greedy command B_k lies in the k-th of K equal bands of
+    the command range (hard braking, ..., accelerating), so the pieces cannot drift onto one
+    command: every state keeps K separate candidates, each valued by its own C_k. Needs
+    `peak_share` > 0, or a piece that never wins would never learn its band."""
     dqn: DqnConfig = field(default_factory=DqnConfig)
     td3: Td3Config = field(default_factory=Td3Config)
     levels: LevelsConfig = field(default_factory=LevelsConfig)
@@ -308,6 +313,12 @@ class TrainConfig(RunConfig):
                     f"peak_share = {self.peak_share} weighs the losing pieces of a quadratic Q "
                     f"of several peaks on the fast path: peaks > 1 with update_path 'fast' or "
                     f"'compiled', got peaks = {self.peaks} on {self.update_path!r}",
+                ),
+                (
+                    not self.peak_bands or self.peak_share > 0.0,
+                    f"peak_bands = true keeps each piece in its band of commands: it needs "
+                    f"peak_share > 0 (a piece that never wins learns only through it), got "
+                    f"peak_share = {self.peak_share} with peaks = {self.peaks}",
                 ),
                 (
                     not self.shield_drives or self.algorithm != "dqn",

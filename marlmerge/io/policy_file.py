@@ -192,6 +192,12 @@ def _check_contents(saved: dict[str, Any], path: Path, group: str) -> None:
     peaks = state.get("peaks", 1)  # quadq's pieces (`QuadraticQNet.peaks`)
     if not (isinstance(peaks, int) and not isinstance(peaks, bool) and peaks >= 1):
         raise ValueError(f"{path}: policy_state.peaks must be an integer >= 1, got {peaks!r}")
+    bands = state.get("peak_bands", False)  # each piece's B in its band (`peak_bands`)
+    if not (isinstance(bands, bool) and (not bands or peaks > 1)):
+        raise ValueError(
+            f"{path}: policy_state.peak_bands must be true or false, and true only with "
+            f"peaks > 1; got {bands!r} with peaks = {peaks}"
+        )
     extra = state.get("extra_bounds", [])  # the join's, with ego.join = "chosen"
     if not isinstance(extra, list | tuple):
         raise ValueError(f"{path}: policy_state.extra_bounds must be a list, got {extra!r}")

@@ -96,6 +96,7 @@ def quadq_net(saved: dict, path: str | Path) -> QuadraticQNet:
     net = QuadraticQNet(
         saved["observation"]["size"], state["hidden"], action_low=lo, action_high=hi,
         extra_bounds=extra, peaks=state.get("peaks", 1),  # the envelope's pieces, if several
+        peak_bands=state.get("peak_bands", False),  # each piece in its band of commands
     )  # fmt: skip
     load_weights(net, state["net"], path)
     return net.eval()

@@ -81,11 +81,17 @@ def peak_rows(peaks: int) -> tuple[slice, slice, slice]:
     return slice(0, peaks), slice(peaks, 2 * peaks), slice(2 * peaks, 3 * peaks)
 
 
+def band_bounds(low: float, span: float, peaks: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(low, span) of each of `peaks` equal bands of the command range [low, low + span]."""
+    return tuple(low + span * k / peaks for k in range(peaks)), (span / peaks,) * peaks
+
+
 def b_bounds(
     lows: tuple[float, ...], spans: tuple[float, ...], like: Tensor
 ) -> tuple[Tensor | float, Tensor | float]:
-    """The B heads' (low, span), one per action component: Python numbers for the paper's one
-    component (as it always computed them), else [m] tensors of `like`'s dtype and device."""
+    """The B heads' (low, span), one per action component (or per piece, with `peak_bands`):
+    Python numbers for the paper's one component (as it always computed them), else [m] ([K])
+    tensors of `like`'s dtype and device."""
     if len(lows) == 1:
         return lows[0], spans[0]
     low, span = (torch.tensor(v, dtype=like.dtype, device=like.device) for v in (lows, spans))
@@ -110,7 +116,9 @@ class QuadraticQNet(nn.Module):
     B_0..B_{K-1}, C_0..C_{K-1}): it can hold several peaks (brake or go), which one quadratic
     cannot. The maximum is max_k C_k(s), the greedy action B_k*(s) with k* = argmax_k C_k(s)
     (the first on a tie). The B biases start spread over the action range, so the pieces
-    begin at different commands.
+    begin at different commands. With `peak_bands` piece k's B is kept inside the k-th of K
+    equal bands of the range (B_k = low + span (k + sigmoid(z_B_k)) / K): the pieces cannot
+    drift onto one command, so brake and go stay separate candidates.
 
     Layer 1 is ``hidden: Linear(obs_dim, 3 * hidden)`` (rows ``[k*H:(k+1)*H]`` belong to head
     k = A, B, C), ReLU, then a block-diagonal layer 2: head k reads only its own H hidden
@@ -137,6 +145,7 @@ class QuadraticQNet(nn.Module):
         extra_bounds: (low, high) of each further action component (none: the paper's 1-D
             action).
         peaks: K quadratic pieces (1: the paper's network; more: one action component only).
+        peak_bands: with K > 1, piece k's B lies in the k-th of K equal bands of the range.
         a_min, a_max: bounds on the curvature magnitude |A|.
         a_init: |A| at initialisation (sets the A bias); ``None`` keeps the nn.Linear init.
         generator: seeds the initialisation; ``None`` uses a fresh ``torch.Generator``
@@ -156,6 +165,7 @@ class QuadraticQNet(nn.Module):
         generator: torch.Generator | None = None,
         extra_bounds: tuple[tuple[float, float], ...] = (),
         peaks: int = 1,
+        peak_bands: bool = False,
     ) -> None:
         super().__init__()
         if peaks < 1 or (peaks > 1 and extra_bounds):
@@ -163,6 +173,8 @@ class QuadraticQNet(nn.Module):
                 f"peaks must be >= 1, and 1 with several action components; got {peaks} with "
                 f"{len(extra_bounds)} further components"
             )
+        if peak_bands and peaks == 1:
+            raise ValueError("peak_bands splits the command range among pieces: needs peaks > 1")
         bounds = ((float(action_low), float(action_high)), *extra_bounds)
         for lo, hi in bounds:
             if not lo < hi:
@@ -178,9 +190,12 @@ class QuadraticQNet(nn.Module):
         self.extra_bounds = tuple((float(lo), float(hi)) for lo, hi in extra_bounds)
         self.action_dim = m = len(bounds)
         self.peaks = int(peaks)
+        self.peak_bands = bool(peak_bands)
         self.n_heads = n = n_heads(m, self.peaks)
         self._low = tuple(lo for lo, _ in bounds)  # the B heads' bounds (no tensors: the
         self._span = tuple(hi - lo for lo, hi in bounds)  # parameters are the paper's keys)
+        if self.peak_bands:  # piece k: the k-th of K equal bands of the command range
+            self._low, self._span = band_bounds(self.action_low, self.action_span, self.peaks)
         self.hidden = nn.Linear(obs_dim, n * hidden)
         self.head_weight = nn.Parameter(torch.empty(n, hidden))  # [n heads, H]
         self.head_bias = nn.Parameter(torch.empty(n))  # [n heads]
@@ -206,6 +221,8 @@ class QuadraticQNet(nn.Module):
             self.head_bias[self._rows()[0]] = math.log(frac / (1.0 - frac))
         if self.peaks > 1:  # B_k starts at the k-th of K evenly spread points of the range
             quantiles = (torch.arange(self.peaks, dtype=torch.float64) + 0.5) / self.peaks
+            if self.peak_bands:  # the same points: the middles of the bands
+                quantiles = torch.full_like(quantiles, 0.5)
             self.head_bias[self._rows()[1]] = torch.logit(quantiles).to(self.head_bias.dtype)
 
     def _rows(self) -> tuple[slice, slice, slice]:
@@ -665,6 +682,8 @@ class FastSpec:
     """tau of the TD loss's expectile (`td_weights`); 0.5: the paper's squared error."""
     peaks: int = 1
     """K quadratic pieces (`QuadraticQNet.peaks`); 1: the paper's network."""
+    peak_bands: bool = False
+    """With K > 1 pieces: piece k's B in the k-th of K equal bands (`QuadraticQNet.peak_bands`)."""
     peak_share: float = 0.0
     """With K > 1 pieces: weight of each losing piece's own squared error to the same target
     (`fast_chunk_peaks`); 0: only the envelope's error, the winning piece alone learns."""
@@ -835,9 +854,13 @@ def fast_chunk_peaks(
     gradient reaches only the piece that is largest at the replayed action (the envelope's
     derivative). With `spec.peak_share` = w > 0 the loss gains w (q_k(s, a) - y)^2 for every
     other piece k, so a piece that never wins still learns and can come back into the envelope
-    (a piece that never wins otherwise never moves). Same arguments and return as `fast_chunk`
-    (no imitation); the losses returned stay the TD losses."""
+    (a piece that never wins otherwise never moves). With `spec.peak_bands` piece k's B lies in
+    the k-th band of the range (`band_bounds`). Same arguments and return as `fast_chunk` (no
+    imitation); the losses returned stay the TD losses."""
     d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
+    b_low, b_span = spec.low, spec.span  # B_k = b_low + b_span * sigmoid(z_B_k)
+    if spec.peak_bands:
+        b_low, b_span = b_bounds(*band_bounds(spec.low, spec.span, kp), rows)  # [K] each
     n = 3 * kp
     rows_a, rows_b, rows_c = peak_rows(kp)
     k, bsz = rows.shape[0], rows.shape[1]
@@ -865,7 +888,7 @@ def fast_chunk_peaks(
         s_a = torch.sigmoid(z[:, rows_a])  # [B, K]
         s_b = torch.sigmoid(z[:, rows_b])  # [B, K]
         big_a = -(spec.a_min + spec.a_span * s_a)  # [B, K]
-        diff = spec.low + spec.span * s_b - act[i]  # B_k(s) - a, [B, K]
+        diff = b_low + b_span * s_b - act[i]  # B_k(s) - a, [B, K]
         q_k = big_a * diff * diff + z[:, rows_c]  # [B, K]
         q, best = q_k.max(-1)  # [B]
         top = (torch.arange(kp, device=rows.device) == best.unsqueeze(-1)).to(q.dtype)  # [B, K]
@@ -879,7 +902,7 @@ def fast_chunk_peaks(
         dz = torch.cat(
             [
                 g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
-                g * 2.0 * big_a * diff * spec.span * s_b * (1.0 - s_b),
+                g * 2.0 * big_a * diff * b_span * s_b * (1.0 - s_b),
                 g,
             ],
             dim=-1,
@@ -1005,6 +1028,7 @@ class FastQuadQUpdater:
             extra=tuple((lo, hi - lo) for lo, hi in net.extra_bounds),
             expectile=float(expectile),
             peaks=net.peaks,
+            peak_bands=net.peak_bands,
             peak_share=float(peak_share),
         )
         # This object owns the target updates: silence torchrl's "no updater" warning.

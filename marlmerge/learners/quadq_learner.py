@@ -47,6 +47,7 @@ class QuadQLearner(Learner):
         peaks: K quadratic pieces, Q the largest (`QuadraticQNet`); 1: the paper's network.
         peak_share: with several peaks, the weight of each losing piece's own TD error
             (`marlmerge.learners.quadq.fast_chunk_peaks`; fast paths only); 0: none.
+        peak_bands: with several peaks, piece k's B in the k-th band of the command range.
     """
 
     algorithm = "quadq"
@@ -72,6 +73,7 @@ class QuadQLearner(Learner):
         expectile: float = 0.5,
         peaks: int = 1,
         peak_share: float = 0.0,
+        peak_bands: bool = False,
     ) -> None:
         if expectile != 0.5 and update_path == "torchrl":
             raise ValueError(
@@ -83,7 +85,7 @@ class QuadQLearner(Learner):
         self.device = torch.device(device)
         self.net = QuadraticQNet(
             obs_dim, hidden, action_low=low, action_high=high, generator=init,
-            extra_bounds=extra_bounds, peaks=peaks,
+            extra_bounds=extra_bounds, peaks=peaks, peak_bands=peak_bands,
         )  # fmt: skip
         if init_weights is not None:  # before the loss module copies them into its target
             self.net.load_state_dict(init_weights)
@@ -203,4 +205,6 @@ class QuadQLearner(Learner):
             state["extra_bounds"] = [list(b) for b in self.net.extra_bounds]
         if self.net.peaks > 1:
             state["peaks"] = self.net.peaks
+        if self.net.peak_bands:
+            state["peak_bands"] = True
         return state

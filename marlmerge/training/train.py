@@ -142,6 +142,7 @@ def make_learner(
         expectile=cfg.td_expectile,
         peaks=cfg.peaks,
         peak_share=cfg.peak_share,
+        peak_bands=cfg.peak_bands,
     )
 
 
