@@ -344,8 +344,8 @@ def test_fast_path_with_three_peaks_matches_lossmodule_and_adam():
     _fast_vs_reference(k=5, peaks=3)
 
 
-@pytest.mark.parametrize("bands", [False, True])
-def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_errors(bands):
+@pytest.mark.parametrize(("bands", "heads"), [(False, "abc"), (True, "abc"), (False, "c")])
+def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_errors(bands, heads):
     share, k = 0.2, 3
     rep = _filled_replay(300, _gen(21))
     rows = rep.sample((k, 32), _gen(22))
@@ -356,7 +356,7 @@ def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_erro
         _perturb_target(loss, _gen(23))
     fast = qq.FastQuadQUpdater(
         fast_loss, rep, generator=_gen(0), updates_per_call=k, target_update_period=10 * k,
-        peak_share=share,
+        peak_share=share, peak_share_heads=heads,
     )  # fmt: skip
     net = ref_loss.value_network
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
@@ -368,6 +368,8 @@ def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_erro
         q, best = q_k.max(-1)
         y = ref_loss.td_target(td)[:, 0]  # [B]
         losing = torch.ones_like(q_k).scatter(-1, best[:, None], 0.0)
+        if heads == "c":  # the losing pieces' error moves their levels C only
+            q_k = a.detach() * (b.detach() - td["action"]) ** 2 + c
         total = (q - y).pow(2).mean() + share * (losing * (q_k - y[:, None]) ** 2).sum(-1).mean()
         td_losses.append((q - y).pow(2).mean().detach())
         opt.zero_grad()
@@ -398,6 +400,8 @@ def test_a_piece_that_never_wins_learns_only_with_a_peak_share(share):
     assert (moved[[1, 3, 5]].min() > 0) == (share > 0)
     with pytest.raises(ValueError, match=r"peak_share = 0.1 .*\(this network has 1\)"):
         qq.FastQuadQUpdater(qq.QuadraticQLoss(_net()), None, generator=_gen(0), peak_share=0.1)
+    with pytest.raises(ValueError, match="peak_share_heads must be one of .* got 'b'"):
+        qq.FastQuadQUpdater(qq.QuadraticQLoss(net), None, generator=_gen(0), peak_share_heads="b")
 
 
 def test_banded_pieces_keep_their_commands_apart():
@@ -643,6 +647,7 @@ def test_an_imitation_weight_must_be_positive():
         ({"peak_share": 0.1}, r"peak_share = 0.1 .* got peaks = 1 on"),
         ({"peak_share": 0.1, "peaks": 2, "update_path": "torchrl"}, r"peaks = 2 on 'torchrl'"),
         ({"peak_bands": True, "peaks": 2}, r"peak_bands = true .* got peak_share = 0.0 with"),
+        ({"peak_share_heads": "ab"}, r"peak_share_heads must be one of \('abc', 'c'\), got 'ab'"),
     ],
 )
 def test_bad_expectile_and_peaks_settings_are_named(values, message):

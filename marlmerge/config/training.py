@@ -20,6 +20,8 @@ PAPER_GAMMA = 0.95
 ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
 """The ego learners `marlmerge train` can train (`TrainConfig.algorithm`)."""
 TRAIN_SHIELDS: tuple[str, ...] = ("none", "shield", "shield-left")
+PEAK_SHARE_HEADS: tuple[str, ...] = ("abc", "c")
+"""The heads of a losing piece of a several-peak Q that `peak_share` reaches: all, or its level."""
 """Gap acceptance's shield in the training loop (`TrainConfig.shield`), as the grid names it."""
 
 JUDGING_KEYS: tuple[str, ...] = ("shield_penalty", "shield_imitation")
@@ -251,6 +253,11 @@ class TrainConfig(RunConfig):
     that never wins never learns and the envelope can collapse to one piece; with a share, every
     piece follows the returns and can come back. 0: the envelope's error alone. quadq with
     `peaks` > 1 on the fast or compiled path."""
+    peak_share_heads: str = "abc"
+    """The heads of a losing piece that `peak_share` reaches: "abc" its A, B and C (the piece
+    follows the returns wherever it loses, and can drift onto the winner's command); "c" its
+    level C alone, so a piece that lost everywhere rises back at its own command B_k and is
+    shaped only where it wins."""
     peak_bands: bool = False
     """With `peaks` = K > 1: piece k's greedy command B_k lies in the k-th of K equal bands of
     the command range (hard braking, ..., accelerating), so the pieces cannot drift onto one
@@ -313,6 +320,11 @@ class TrainConfig(RunConfig):
                     f"peak_share = {self.peak_share} weighs the losing pieces of a quadratic Q "
                     f"of several peaks on the fast path: peaks > 1 with update_path 'fast' or "
                     f"'compiled', got peaks = {self.peaks} on {self.update_path!r}",
+                ),
+                (
+                    self.peak_share_heads in PEAK_SHARE_HEADS,
+                    f"peak_share_heads must be one of {PEAK_SHARE_HEADS}, got "
+                    f"{self.peak_share_heads!r}",
                 ),
                 (
                     not self.peak_bands or self.peak_share > 0.0,

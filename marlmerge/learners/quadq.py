@@ -43,7 +43,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torch import Tensor, nn
 from torchrl.objectives import HardUpdate, LossModule
 
-from marlmerge.config.training import PAPER_GAMMA
+from marlmerge.config.training import PAPER_GAMMA, PEAK_SHARE_HEADS
 
 __all__ = [
     "DEFAULT_ACTION_BOUNDS",
@@ -687,6 +687,8 @@ class FastSpec:
     peak_share: float = 0.0
     """With K > 1 pieces: weight of each losing piece's own squared error to the same target
     (`fast_chunk_peaks`); 0: only the envelope's error, the winning piece alone learns."""
+    peak_share_heads: str = "abc"
+    """The heads of a losing piece that `peak_share` reaches: "abc" all three, "c" its level."""
 
     @property
     def action_dim(self) -> int:
@@ -854,9 +856,11 @@ def fast_chunk_peaks(
     gradient reaches only the piece that is largest at the replayed action (the envelope's
     derivative). With `spec.peak_share` = w > 0 the loss gains w (q_k(s, a) - y)^2 for every
     other piece k, so a piece that never wins still learns and can come back into the envelope
-    (a piece that never wins otherwise never moves). With `spec.peak_bands` piece k's B lies in
-    the k-th band of the range (`band_bounds`). Same arguments and return as `fast_chunk` (no
-    imitation); the losses returned stay the TD losses."""
+    (a piece that never wins otherwise never moves); with `spec.peak_share_heads` = "c" that
+    error reaches only the losing pieces' levels C_k, not their A and B. With
+    `spec.peak_bands` piece k's B lies in the k-th band of the range (`band_bounds`). Same
+    arguments and return as `fast_chunk` (no imitation); the losses returned stay the TD
+    losses."""
     d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
     b_low, b_span = spec.low, spec.span  # B_k = b_low + b_span * sigmoid(z_B_k)
     if spec.peak_bands:
@@ -897,13 +901,16 @@ def fast_chunk_peaks(
         wd = delta if w is None else w * delta
         losses.append((wd * delta).mean())
         g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
+        g_c = g  # dL/dC_k
         if spec.peak_share > 0.0:  # the losing pieces' own errors
-            g = g + (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y[i].unsqueeze(-1))
+            lose = (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y[i].unsqueeze(-1))
+            g_c = g + lose
+            g = g_c if spec.peak_share_heads == "abc" else g  # "c": their levels only
         dz = torch.cat(
             [
                 g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
                 g * 2.0 * big_a * diff * b_span * s_b * (1.0 - s_b),
-                g,
+                g_c,
             ],
             dim=-1,
         )  # [B, 3K]
@@ -973,6 +980,7 @@ class FastQuadQUpdater:
             :class:`QuadraticQLoss`.
         peak_share: with several peaks, the weight of each losing piece's own TD error
             (`fast_chunk_peaks`); 0: the envelope's error alone.
+        peak_share_heads: the losing pieces' heads that error reaches: "abc" or "c".
     """
 
     def __init__(
@@ -991,6 +999,7 @@ class FastQuadQUpdater:
         compile_kwargs: dict | None = None,
         expectile: float = 0.5,
         peak_share: float = 0.0,
+        peak_share_heads: str = "abc",
     ) -> None:
         net = loss.value_network
         if not isinstance(net, QuadraticQNet):
@@ -999,6 +1008,10 @@ class FastQuadQUpdater:
             raise ValueError(
                 f"peak_share = {peak_share} weighs the losing pieces of a Q of several peaks: "
                 f"it must be >= 0, and 0 with one peak (this network has {net.peaks})"
+            )
+        if peak_share_heads not in PEAK_SHARE_HEADS:
+            raise ValueError(
+                f"peak_share_heads must be one of {PEAK_SHARE_HEADS}, got {peak_share_heads!r}"
             )
         if target_update_period % updates_per_call != 0:
             raise ValueError("updates_per_call must divide target_update_period")
@@ -1030,6 +1043,7 @@ class FastQuadQUpdater:
             peaks=net.peaks,
             peak_bands=net.peak_bands,
             peak_share=float(peak_share),
+            peak_share_heads=peak_share_heads,
         )
         # This object owns the target updates: silence torchrl's "no updater" warning.
         loss._has_update_associated["value_network"] = True

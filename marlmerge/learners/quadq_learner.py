@@ -48,6 +48,7 @@ class QuadQLearner(Learner):
         peak_share: with several peaks, the weight of each losing piece's own TD error
             (`marlmerge.learners.quadq.fast_chunk_peaks`; fast paths only); 0: none.
         peak_bands: with several peaks, piece k's B in the k-th band of the command range.
+        peak_share_heads: the losing pieces' heads their share reaches ("abc" or "c").
     """
 
     algorithm = "quadq"
@@ -74,6 +75,7 @@ class QuadQLearner(Learner):
         peaks: int = 1,
         peak_share: float = 0.0,
         peak_bands: bool = False,
+        peak_share_heads: str = "abc",
     ) -> None:
         if expectile != 0.5 and update_path == "torchrl":
             raise ValueError(
@@ -98,6 +100,7 @@ class QuadQLearner(Learner):
         )
         self.expectile = float(expectile)
         self.peak_share = float(peak_share)
+        self.peak_share_heads = peak_share_heads
         self.sample_generator = sample_generator
         self._imitation: tuple[Teacher, float] | None = None
         self._build_updater()
@@ -132,6 +135,7 @@ class QuadQLearner(Learner):
             compile=self.update_path == "compiled",
             expectile=self.expectile,
             peak_share=self.peak_share,
+            peak_share_heads=self.peak_share_heads,
         )
         if self._imitation is not None:
             self.fast.imitate(*self._imitation)

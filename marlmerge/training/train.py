@@ -143,6 +143,7 @@ def make_learner(
         peaks=cfg.peaks,
         peak_share=cfg.peak_share,
         peak_bands=cfg.peak_bands,
+        peak_share_heads=cfg.peak_share_heads,
     )
 
 
