@@ -655,3 +655,15 @@ def test_bad_expectile_and_peaks_settings_are_named(values, message):
 
     with pytest.raises(ValueError, match=message):
         TrainConfig(**values)
+
+
+@pytest.mark.parametrize(("key", "value"), [("expectile", 0.3), ("peak_share", 0.1)])
+def test_the_learner_refuses_fast_path_losses_on_the_torchrl_path(key, value):
+    from marlmerge.learners.quadq_learner import QuadQLearner
+
+    with pytest.raises(ValueError, match=f"{key} = {value} trains the fast path's loss"):
+        QuadQLearner(
+            OBS_DIM, 16, LOW, HIGH, gamma=0.95, lr=1e-3, target_update_period=10,
+            exploration=qq.GaussianExploration(1.0, 0.1, 100, LOW, HIGH), update_path="torchrl",
+            updates_per_call=1, seed=0, sample_generator=_gen(0), peaks=2, **{key: value},
+        )  # fmt: skip

@@ -20,9 +20,9 @@ PAPER_GAMMA = 0.95
 ALGORITHMS: tuple[str, ...] = ("quadq", "dqn", "td3")
 """The ego learners `marlmerge train` can train (`TrainConfig.algorithm`)."""
 TRAIN_SHIELDS: tuple[str, ...] = ("none", "shield", "shield-left")
+"""Gap acceptance's shield in the training loop (`TrainConfig.shield`), as the grid names it."""
 PEAK_SHARE_HEADS: tuple[str, ...] = ("abc", "c")
 """The heads of a losing piece of a several-peak Q that `peak_share` reaches: all, or its level."""
-"""Gap acceptance's shield in the training loop (`TrainConfig.shield`), as the grid names it."""
 
 JUDGING_KEYS: tuple[str, ...] = ("shield_penalty", "shield_imitation")
 """The `TrainConfig` keys that make the shield judge instead of drive (either > 0)."""

@@ -77,11 +77,12 @@ class QuadQLearner(Learner):
         peak_bands: bool = False,
         peak_share_heads: str = "abc",
     ) -> None:
-        if expectile != 0.5 and update_path == "torchrl":
-            raise ValueError(
-                f"expectile = {expectile} trains the fast path's loss: update_path 'fast' or "
-                "'compiled', not 'torchrl'"
-            )
+        for name, value, plain in (("expectile", expectile, 0.5), ("peak_share", peak_share, 0.0)):
+            if value != plain and update_path == "torchrl":
+                raise ValueError(
+                    f"{name} = {value} trains the fast path's loss: update_path 'fast' or "
+                    "'compiled', not 'torchrl'"
+                )
         init = torch.Generator().manual_seed(seed)
         self.obs_dim, self.hidden = obs_dim, hidden
         self.device = torch.device(device)
