@@ -108,6 +108,12 @@ docs/stress.md, attempt 14)."""
 HELDOUT15_SEED = 20261220
 """The seed the fifteenth held-out set (`envs/heldout15_*`) was drawn with: committed before
 anyone ran a policy on it, while the fourteenth set was still unseen, for the round that next
+tunes a recipe. No attempt after the fourteenth reached it; it checks whether attempt 14's
+lean (`peaks = 3` on `trainers/hardened_join.toml`, against `hardened_join`) holds on a second
+set, with the same seeds and nothing retrained (docs/stress.md)."""
+HELDOUT16_SEED = 20261221
+"""The seed the sixteenth held-out set (`envs/heldout16_*`) was drawn with: committed before
+anyone ran a policy on it, while the fifteenth set was still unseen, for the round that next
 tunes a recipe."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
@@ -123,6 +129,7 @@ HELDOUT_SETS = {
     "heldout13": HELDOUT13_SEED,
     "heldout14": HELDOUT14_SEED,
     "heldout15": HELDOUT15_SEED,
+    "heldout16": HELDOUT16_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
