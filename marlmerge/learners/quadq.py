@@ -901,11 +901,11 @@ def fast_chunk_peaks(
         wd = delta if w is None else w * delta
         losses.append((wd * delta).mean())
         g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
-        g_c = g  # dL/dC_k
+        g_c = g  # dL/dC_k; g stays dL/dA_k, dL/dB_k
         if spec.peak_share > 0.0:  # the losing pieces' own errors
-            lose = (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y[i].unsqueeze(-1))
-            g_c = g + lose
-            g = g_c if spec.peak_share_heads == "abc" else g  # "c": their levels only
+            g_c = g + (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y[i].unsqueeze(-1))
+            if spec.peak_share_heads == "abc":  # "c": they reach the levels only
+                g = g_c
         dz = torch.cat(
             [
                 g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
