@@ -9,7 +9,9 @@ import pytest
 from marlmerge.config.presets import resolve_config
 from marlmerge.config.training import LevelsConfig
 from marlmerge.io import files
+from marlmerge.sim import layout as L
 from marlmerge.sim.core import TrafficCore
+from marlmerge.sim.streams import world_changes
 from marlmerge.training.levels import LevelReplay
 from marlmerge.training.train import load_train_config, train
 
@@ -75,6 +77,62 @@ def test_replayed_levels_are_the_failing_ones():
     assert np.mean([t % 10 == 0 for t in replayed]) > 0.8  # 4 of 40 levels fail
 
 
+class _OneLevel:
+    """A scenario source that runs every new road on one level: level 0 of `replay`, drawn
+    once."""
+
+    def __init__(self, replay):
+        self.replay = replay
+
+    def draw(self, base, world, g):
+        if not self.replay.levels:
+            self.replay.draw(base, world, g)  # level 0: a fresh draw (with its road's seed)
+        return base.replace(**world_changes(base, *self.replay.levels[0].draw)), 0
+
+    def road(self, world, tag):
+        return self.replay.road(world, tag)
+
+
+def _road(core, b=0):
+    """World b's vehicles now: position, speed, desired speed and lane of each slot."""
+    arrays = core.state_dict()["arrays"]
+    vf, vi = arrays["vf"][b], arrays["vi"][b]
+    return np.concatenate([vf[[L.VF_X, L.VF_V, L.VF_V0]].ravel(), vi[L.VI_LANE].ravel()])
+
+
+def test_replayed_roads_are_the_same_road():
+    """With `replay_roads` a level carries the seed of its road: every world that runs it gets
+    the same vehicles, the same ego; without it, the same traffic condition on new roads. The
+    road's seed goes through the buffer's state, and older states without it still load."""
+    scen = resolve_config("robust_mix4")
+    roads = {}
+    for on in (True, False):
+        core = TrafficCore(
+            scen, batch_size=2, seed=5, scenario_source=_OneLevel(_replay(replay_roads=on))
+        )
+        core.reset(seed=5)
+        first = [_road(core, b) for b in range(2)]
+        core.next_ego(np.ones(2, dtype=bool))  # resample_every_egos = 1: the level again
+        roads[on] = first + [_road(core, b) for b in range(2)]
+        assert core.world_scenario(0) == core.world_scenario(1)
+    assert all(np.array_equal(roads[True][0], r) for r in roads[True][1:])
+    assert not any(np.array_equal(roads[False][0], r) for r in roads[False][1:])
+    replay = _replay(replay_roads=True)
+    g = np.random.default_rng(2)
+    tags = [replay.draw(scen, 0, g)[1] for _ in range(3)]
+    seeds = [replay.road(0, t) for t in tags]
+    assert len(set(seeds)) == 3 and all(isinstance(s, int) for s in seeds)
+    again = _replay(replay_roads=True)
+    again.load_state_dict(replay.state_dict())
+    assert [again.road(0, t) for t in tags] == seeds
+    old = replay.state_dict()
+    old["levels"] = [entry[:6] for entry in old["levels"]]
+    again.load_state_dict(old)
+    assert [again.road(0, t) for t in tags] == [None] * 3
+    with pytest.raises(ValueError, match="replay_roads = true needs levels.replay_fraction"):
+        load_train_config("quick", **{"levels.replay_roads": True})
+
+
 TINY = dict(
     scenario="robust_mix4",
     total_sim_steps=8_192,
@@ -90,8 +148,9 @@ TINY = dict(
 
 
 @pytest.mark.slow
-def test_training_with_level_replay_resumes_bit_for_bit(tmp_path):
-    cfg = load_train_config("quick", **TINY)
+@pytest.mark.parametrize("roads", [False, True])
+def test_training_with_level_replay_resumes_bit_for_bit(tmp_path, roads):
+    cfg = load_train_config("quick", **TINY, **{"levels.replay_roads": roads})
     full, cut = tmp_path / "full", tmp_path / "cut"
     train(cfg, full, progress=False)
     train(cfg, cut, progress=False, stop_after_sim_steps=5_000)
@@ -100,6 +159,7 @@ def test_training_with_level_replay_resumes_bit_for_bit(tmp_path):
     a, b = (files.load(d / "policy.pt")["policy_state"]["net"] for d in (full, cut))
     assert all(np.array_equal(a[k].numpy(), b[k].numpy()) for k in a)
     levels = files.load(full / "checkpoint.pt")["levels"]
+    assert all((lv[6] is not None) == roads for lv in levels["levels"])
     scored = [lv for lv in levels["levels"] if lv[3] > 0]
     assert len(scored) >= 8 and levels["draws"] > len(levels["levels"])  # levels were replayed
     with open(full / "egos.csv", newline="") as fh:

@@ -255,10 +255,13 @@ def test_a_vectorised_sweep_splits_the_seeds_over_workers_and_matches_single_run
 
 @pytest.mark.slow
 def test_level_replay_seeds_are_their_single_runs(tmp_path):
-    """`[levels]` with `--seeds`: each seed replays its own levels, and is its single run."""
+    """`[levels]` with `--seeds`: each seed replays its own levels (here its own roads), and is
+    its single run."""
     from test_levels import TINY as LEVELS
 
-    cfg = load_train_config("quick", **{**LEVELS, "total_sim_steps": 6_144})
+    cfg = load_train_config(
+        "quick", **{**LEVELS, "total_sim_steps": 6_144, "levels.replay_roads": True}
+    )
     train_seeds(cfg, [0, 1], tmp_path / "vec", progress=False)
     train(dataclasses.replace(cfg, seed=1), tmp_path / "one", progress=False)
     _same_run(tmp_path / "vec" / "seed_1", tmp_path / "one")

@@ -166,6 +166,9 @@ class LevelsConfig:
     failed ego, so that training replays them early."""
     seed_levels: int = num(16, 1, 100_000)
     """Levels drawn from each of `seed_presets`."""
+    replay_roads: bool = False
+    """True: a level is one road (its traffic and the seed of its vehicles' draws), replayed
+    as it was; False: a traffic condition, replayed on a new road each time."""
 
 
 @dataclass(frozen=True)
@@ -344,6 +347,11 @@ class TrainConfig(RunConfig):
                 (
                     not self.levels.seed_presets or self.levels.replay_fraction > 0.0,
                     "levels.seed_presets needs levels.replay_fraction > 0 (nothing replays them)",
+                ),
+                (
+                    not self.levels.replay_roads or self.levels.replay_fraction > 0.0,
+                    "levels.replay_roads = true needs levels.replay_fraction > 0 (nothing "
+                    "replays the roads)",
                 ),
             ]
         )

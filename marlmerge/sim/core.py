@@ -419,12 +419,16 @@ class TrafficCore:
             self.next_ego(sel)
 
     def _draw_scenario(self, b: int) -> None:
-        """World `b` draws its traffic (`[sample]`) for the road it is about to get."""
+        """World `b` draws its traffic (`[sample]`) for the road it is about to get, and with a
+        scenario source that names the road's seed, starts its other generators from it."""
         g = self.streams.gens[b][SCENARIO_STREAM]
         if self.scenario_source is None:
             cfg = draw_world_scenario(self.cfg, g)
         else:
             cfg, self.world_tag[b] = self.scenario_source.draw(self.cfg, b, g)
+            road_seed = self.scenario_source.road(b, int(self.world_tag[b]))
+            if road_seed is not None:
+                self.streams.seed_road(b, road_seed)
         self._set_world_scenario(b, cfg)
 
     def _set_world_scenario(self, b: int, cfg: ScenarioConfig) -> None:

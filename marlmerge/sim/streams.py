@@ -62,6 +62,8 @@ SCENARIO_STREAM = 5
 """The stream of a world's drawn traffic (`[sample]`), spawned only when sampling is on."""
 LAPSE_STREAM = 6
 """The stream of a world's attention-lapse keys, spawned only when drivers lapse."""
+ROAD_SEED_KEY = 11
+"""spawn_key of a road chosen by its seed (`Streams.seed_road`), apart from every world's."""
 START_SPEED_HALF_WIDTH_MPS = 3.0
 """A world's ramp vehicles start within +- this of its drawn centre, m/s
 (`sample.ego_start_speed_mps`)."""
@@ -147,6 +149,15 @@ class Streams:
             # worlds every time
             fresh = np.random.SeedSequence(seq.entropy, spawn_key=seq.spawn_key)
             self.gens[b] = [np.random.default_rng(c) for c in fresh.spawn(self.n_streams)]
+
+    def seed_road(self, b: int, road_seed: int) -> None:
+        """World `b`'s generators start again from `road_seed`, all but its scenario stream,
+        which goes on: the road a scenario source chose by its seed (`ScenarioSource.road`),
+        the same fill, arrivals and departures every time it is chosen."""
+        seq = np.random.SeedSequence(road_seed, spawn_key=(ROAD_SEED_KEY,))
+        gens = [np.random.default_rng(c) for c in seq.spawn(self.n_streams)]
+        gens[SCENARIO_STREAM] = self.gens[b][SCENARIO_STREAM]
+        self.gens[b] = gens
 
     # ------------------------------------------------------------------ drawn vehicles
     def _drivers(
@@ -410,6 +421,12 @@ class ScenarioSource(Protocol):
     ) -> tuple[ScenarioConfig, int]:
         """The scenario world `world` runs next (differing from `base` only in `WORLD_KEYS`)
         and a tag for it (>= 0; the core reports it, `TrafficCore.world_tag`)."""
+        ...
+
+    def road(self, world: int, tag: int) -> int | None:
+        """The seed of the road the level `tag`, just drawn for `world`, runs on (its fill,
+        arrivals and departures: `Streams.seed_road`), or None: the world's own generators go
+        on."""
         ...
 
 

@@ -16,6 +16,12 @@ over the levels scored at least once; a full buffer drops its lowest-scored leve
 among equals) for a fresh draw. Every choice is drawn from the world's scenario stream, so a run
 is reproducible and resumes bit for bit (`state_dict`); with `replay_fraction = 0` the draws are
 those of `[sample]` itself.
+
+A level is a traffic condition: replayed, it runs on a new road of that traffic. With
+`replay_roads = true` a level is one road, as PLR's levels are seeds: each fresh level also
+draws a road seed, and the world's generators (all but its scenario stream) start from it
+(`Streams.seed_road`), so a replayed level has the same vehicles on the road, the same
+arrivals and the same ego departure as when it failed; only what the ego does differs.
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ class Level:
     failures: int = 0
     last_chosen: int = 0
     """The replay's draw count when the level was last chosen (or added)."""
+    road: int | None = None
+    """With `replay_roads`: the seed of the level's road (`Streams.seed_road`)."""
 
     @property
     def score(self) -> float:
@@ -74,8 +82,15 @@ class LevelReplay:
             level = self.levels[tag]
             level.last_chosen = self.draws
         else:
-            tag, level = self._add(draw_world_values(base, g))
+            tag, level = self._add(draw_world_values(base, g), self._road_seed(g))
         return base.replace(**world_changes(base, *level.draw)), tag
+
+    def road(self, world: int, tag: int) -> int | None:
+        """The seed of level `tag`'s road with `replay_roads`, else None (a fresh road)."""
+        return self.levels[tag].road
+
+    def _road_seed(self, g: np.random.Generator) -> int | None:
+        return int(g.integers(2**63)) if self.cfg.replay_roads else None
 
     def probabilities(self, ids: list[int]) -> np.ndarray:
         """PLR's replay distribution over the levels `ids` (scored ones)."""
@@ -88,12 +103,12 @@ class LevelReplay:
         p_stale = stale / stale.sum() if stale.sum() > 0 else np.full(len(ids), 1.0 / len(ids))
         return (1.0 - self.cfg.staleness) * p_score + self.cfg.staleness * p_stale
 
-    def _add(self, draw: WorldDraw) -> tuple[int, Level]:
+    def _add(self, draw: WorldDraw, road: int | None) -> tuple[int, Level]:
         if len(self.levels) >= self.cfg.capacity:
             drop = min(self.levels, key=lambda i: (self.levels[i].score, i))
             del self.levels[drop]
         tag, self.next_id = self.next_id, self.next_id + 1
-        self.levels[tag] = Level(draw, last_chosen=self.draws)
+        self.levels[tag] = Level(draw, last_chosen=self.draws, road=road)
         return tag, self.levels[tag]
 
     def seed_levels(self, base: ScenarioConfig, run_seed: int) -> None:
@@ -115,7 +130,7 @@ class LevelReplay:
                 values, pure = draw_world_values(preset, g)
                 values |= {k: v for k, v in road.items() if values.get(k) is None}
                 base.replace(**world_changes(base, values, pure))  # a clear error now if invalid
-                _, level = self._add((values, pure))
+                _, level = self._add((values, pure), self._road_seed(g))
                 level.episodes, level.failures = 1, 1
 
     # ---- scores ------------------------------------------------------------------------------
@@ -147,7 +162,7 @@ class LevelReplay:
             "next_id": self.next_id,
             "draws": self.draws,
             "levels": [
-                [i, lv.draw[0], lv.draw[1], lv.episodes, lv.failures, lv.last_chosen]
+                [i, lv.draw[0], lv.draw[1], lv.episodes, lv.failures, lv.last_chosen, lv.road]
                 for i, lv in self.levels.items()
             ],
         }
@@ -155,9 +170,9 @@ class LevelReplay:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.next_id, self.draws = state["next_id"], state["draws"]
         self.levels = {
-            int(i): Level((dict(values), pure), episodes, failures, last)
-            for i, values, pure, episodes, failures, last in state["levels"]
-        }
+            int(i): Level((dict(values), pure), episodes, failures, last, *road)
+            for i, values, pure, episodes, failures, last, *road in state["levels"]
+        }  # checkpoints written before `replay_roads` have no road
 
 
 class SeedLevels:
@@ -171,3 +186,6 @@ class SeedLevels:
         self, base: ScenarioConfig, world: int, g: np.random.Generator
     ) -> tuple[ScenarioConfig, int]:
         return self.replays[world // self.b].draw(base, world % self.b, g)
+
+    def road(self, world: int, tag: int) -> int | None:
+        return self.replays[world // self.b].road(world % self.b, tag)
