@@ -29,7 +29,7 @@ def test_the_heldout3_files_are_the_seeds_draw(tmp_path):
         assert load_scenario(committed) == load_scenario(path), path.name
 
 
-@pytest.mark.parametrize("prefix", [f"heldout{k}" for k in range(4, 17)])
+@pytest.mark.parametrize("prefix", [f"heldout{k}" for k in range(4, 18)])
 def test_the_later_heldout_files_are_their_seeds_draw_and_differ_from_heldout3(tmp_path, prefix):
     drawn = write_heldout_set(tmp_path, prefix)
     assert len(drawn) == 12

@@ -115,6 +115,10 @@ HELDOUT16_SEED = 20261221
 """The seed the sixteenth held-out set (`envs/heldout16_*`) was drawn with: committed before
 anyone ran a policy on it, while the fifteenth set was still unseen, for the round that next
 tunes a recipe."""
+HELDOUT17_SEED = 20261222
+"""The seed the seventeenth held-out set (`envs/heldout17_*`) was drawn with: committed before
+anyone ran a policy on it, while the sixteenth set was still unseen, for the round after the one
+the sixteenth judges."""
 HELDOUT_SETS = {
     "heldout3": HELDOUT3_SEED,
     "heldout4": HELDOUT4_SEED,
@@ -130,6 +134,7 @@ HELDOUT_SETS = {
     "heldout14": HELDOUT14_SEED,
     "heldout15": HELDOUT15_SEED,
     "heldout16": HELDOUT16_SEED,
+    "heldout17": HELDOUT17_SEED,
 }
 """The held-out sets drawn from `SPACE`: file prefix -> seed."""
 
