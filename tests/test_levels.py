@@ -46,6 +46,33 @@ def test_replay_ranks_by_failure_and_brings_stale_levels_back():
     assert small.levels[3].episodes == 1
 
 
+def test_learnability_puts_levels_the_ego_sometimes_fails_first():
+    """`score = "learnability"`: p (1 - p), p = (failures + m) / (episodes + 1), m the buffer's
+    failure rate. A level failed once, or half the time, ranks above one always failed (40 of
+    40) and one never failed; an unscored level is kept when the buffer is full, and the
+    levels' ranks under "failure" are the plain failure rate's."""
+    scen = resolve_config("robust_mix")
+    g = np.random.default_rng(0)
+    learn = _replay(score="learnability", temperature=1.0, staleness=0.0, capacity=5)
+    tags = [learn.draw(scen, 0, g)[1] for _ in range(4)]
+    for tag, (fails, eps) in zip(tags, ((1, 1), (4, 8), (40, 40), (0, 45)), strict=True):
+        learn.update(np.full(eps, tag), np.arange(eps) < fails)
+    m = 45 / 94
+    p = (np.array([1, 4, 40, 0]) + m) / (np.array([1, 8, 40, 45]) + 1)
+    assert np.allclose(learn.scores(tags), p * (1 - p))
+    assert list(np.argsort(-learn.scores(tags))) == [1, 0, 2, 3]
+    assert np.allclose(learn.probabilities(tags)[[1, 0, 2, 3]], np.array([12, 6, 4, 3]) / 25)
+    fail = _replay(temperature=1.0, staleness=0.0)
+    fail.load_state_dict(learn.state_dict())
+    assert list(np.argsort(-fail.scores(tags))) == [2, 0, 1, 3]
+    learn.cfg = LevelsConfig(replay_fraction=0.0, capacity=5, score="learnability")
+    assert learn.draw(scen, 0, g)[1] == 4  # a fifth, unscored level fills the buffer
+    assert learn.draw(scen, 0, g)[1] == 5  # full: the never-failed level goes, not the unscored
+    assert sorted(learn.levels) == [0, 1, 2, 4, 5]
+    with pytest.raises(ValueError, match="levels.score must be one of"):
+        load_train_config("quick", **{"levels.score": "regret"})
+
+
 def test_off_or_before_the_first_scores_the_core_draws_as_without_it():
     """A replay with replay_fraction = 0, or before min_levels levels are scored, draws each
     world's traffic from its own stream exactly as `[sample]` does."""

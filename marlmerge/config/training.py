@@ -143,6 +143,10 @@ class Td3Config:
     """... clipped to +- this, m/s^2 (TD3's 0.5 x 3.5)."""
 
 
+LEVEL_SCORES = ("failure", "learnability")
+"""What ranks the levels of `[levels]` (`LevelsConfig.score`)."""
+
+
 @dataclass(frozen=True)
 class LevelsConfig:
     """`[levels]`: prioritised replay of the traffic where the ego fails
@@ -169,6 +173,12 @@ class LevelsConfig:
     replay_roads: bool = False
     """True: a level is one road (its traffic and the seed of its vehicles' draws), replayed
     as it was; False: a traffic condition, replayed on a new road each time."""
+    score: str = "failure"
+    """What ranks the levels: "failure", the failure rate `(failures + 1/2) / (episodes + 1)`
+    (PLR's prioritisation by how badly the ego does), or "learnability", p (1 - p) with
+    p = (failures + m) / (episodes + 1) and m the buffer's failure rate (Rutherford et al.,
+    NeurIPS 2024): levels the ego sometimes fails come first, and one it always fails or
+    never fails falls back. Unscored levels rank first under it (they are kept)."""
 
 
 @dataclass(frozen=True)
@@ -347,6 +357,10 @@ class TrainConfig(RunConfig):
                 (
                     not self.levels.seed_presets or self.levels.replay_fraction > 0.0,
                     "levels.seed_presets needs levels.replay_fraction > 0 (nothing replays them)",
+                ),
+                (
+                    self.levels.score in LEVEL_SCORES,
+                    f"levels.score must be one of {LEVEL_SCORES}, got {self.levels.score!r}",
                 ),
                 (
                     not self.levels.replay_roads or self.levels.replay_fraction > 0.0,

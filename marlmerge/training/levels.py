@@ -13,9 +13,10 @@ probability of Jiang et al.'s Prioritized Level Replay (ICML 2021):
     P_stale ~ draws since the level was last chosen
 
 over the levels scored at least once; a full buffer drops its lowest-scored level (the oldest
-among equals) for a fresh draw. Every choice is drawn from the world's scenario stream, so a run
-is reproducible and resumes bit for bit (`state_dict`); with `replay_fraction = 0` the draws are
-those of `[sample]` itself.
+among equals) for a fresh draw. With `score = "learnability"` the score is p (1 - p) instead,
+p the level's failure rate shrunk towards the buffer's (`LevelsConfig.score`). Every choice is
+drawn from the world's scenario stream, so a run is reproducible and resumes bit for bit
+(`state_dict`); with `replay_fraction = 0` the draws are those of `[sample]` itself.
 
 A level is a traffic condition: replayed, it runs on a new road of that traffic. With
 `replay_roads = true` a level is one road, as PLR's levels are seeds: each fresh level also
@@ -94,7 +95,7 @@ class LevelReplay:
 
     def probabilities(self, ids: list[int]) -> np.ndarray:
         """PLR's replay distribution over the levels `ids` (scored ones)."""
-        scores = np.array([self.levels[i].score for i in ids])
+        scores = self.scores(ids)
         ranks = np.empty(len(ids))
         ranks[np.argsort(-scores, kind="stable")] = np.arange(1, len(ids) + 1)
         p_score = (1.0 / ranks) ** (1.0 / self.cfg.temperature)
@@ -103,10 +104,22 @@ class LevelReplay:
         p_stale = stale / stale.sum() if stale.sum() > 0 else np.full(len(ids), 1.0 / len(ids))
         return (1.0 - self.cfg.staleness) * p_score + self.cfg.staleness * p_stale
 
+    def scores(self, ids: list[int]) -> np.ndarray:
+        """The levels' scores (`LevelsConfig.score`) [len(ids)]."""
+        if self.cfg.score == "failure":
+            return np.array([self.levels[i].score for i in ids])
+        episodes = np.array([self.levels[i].episodes for i in ids], dtype=float)
+        failures = np.array([self.levels[i].failures for i in ids], dtype=float)
+        scored = [lv for lv in self.levels.values() if lv.episodes > 0]
+        n = sum(lv.episodes for lv in scored)
+        m = sum(lv.failures for lv in scored) / n if n else 0.5
+        p = (failures + m) / (episodes + 1.0)
+        return np.where(episodes > 0, p * (1.0 - p), 0.25)
+
     def _add(self, draw: WorldDraw, road: int | None) -> tuple[int, Level]:
         if len(self.levels) >= self.cfg.capacity:
-            drop = min(self.levels, key=lambda i: (self.levels[i].score, i))
-            del self.levels[drop]
+            ids = list(self.levels)  # in the order added: the oldest first among equal scores
+            del self.levels[ids[int(np.argmin(self.scores(ids)))]]
         tag, self.next_id = self.next_id, self.next_id + 1
         self.levels[tag] = Level(draw, last_chosen=self.draws, road=road)
         return tag, self.levels[tag]
