@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from marlmerge.config.codec import from_dict
 from marlmerge.config.training import LevelsConfig
 from marlmerge.io import files
 from marlmerge.training.levels import LevelReplay
@@ -25,9 +26,7 @@ def buffer_row(run: Path, top: int) -> str:
     """One run's line of the table."""
     state = files.load(run / "checkpoint.pt")
     saved = json.loads((run / "config.json").read_text())["levels"]
-    levels_cfg = LevelsConfig(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
-    )
+    levels_cfg = from_dict(LevelsConfig, saved)  # the strict loader: defaults for older runs
     replay = LevelReplay(levels_cfg)
     replay.load_state_dict(state["levels"])
     ids = [i for i, lv in replay.levels.items() if lv.episodes > 0]
