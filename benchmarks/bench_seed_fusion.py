@@ -11,30 +11,33 @@ inductor's C++ wrapper, as `FusedQuadQUpdates` compiles it):
 - `bit_identical`: whether each seed of the fused call equals its own single-seed call, bit
   for bit (the weights after one chunk).
 
-    python benchmarks/bench_seed_fusion.py [--seeds 8] [--repeats 200]
+With `--peaks K` (K > 1) the network has K quadratic pieces and the chunks are
+`fast_chunk_peaks` and `fused_chunk_peaks`.
+
+    python benchmarks/bench_seed_fusion.py [--seeds 8] [--peaks 1] [--repeats 200]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import time
 
 import torch
 
-from marlmerge.learners.quadq import FastSpec, fast_chunk
-from marlmerge.learners.quadq_fused import fused_chunk
+from marlmerge.learners.quadq import FastSpec, fast_chunk, fast_chunk_peaks, param_layout
+from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
 
 SPEC = FastSpec(obs_dim=7, hidden=64, a_min=1e-3, a_span=5 - 1e-3, low=-4.5, span=7.0,
                  gamma=0.95, lr=1e-3, beta1=0.9, beta2=0.999, eps=1e-8)  # fmt: skip
 K, BATCH = 10, 32
-SHAPES = ((3 * 64, 7), (3 * 64,), (3, 64), (3,))
 
 
-def measure(single, fused, n_seeds: int, repeats: int) -> dict:
+def measure(single, fused, n_seeds: int, repeats: int, peaks: int = 1) -> dict:
     gen = torch.Generator().manual_seed(0)
-    p = sum(torch.Size(s).numel() for s in SHAPES)
+    p = sum(torch.Size(s).numel() for _, s in param_layout(SPEC.obs_dim, SPEC.hidden, 1, peaks))
     flat = torch.randn(n_seeds, p, generator=gen) * 0.1
     target = flat + 0.01
     rows = torch.randn(n_seeds, K, BATCH, 2 * SPEC.obs_dim + 3, generator=gen)
@@ -67,16 +70,20 @@ def measure(single, fused, n_seeds: int, repeats: int) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--seeds", type=int, default=8)
+    p.add_argument("--peaks", type=int, default=1, help="quadratic pieces of the network")
     p.add_argument("--repeats", type=int, default=200)
     args = p.parse_args()
+    if args.peaks < 1 or args.seeds < 1:
+        raise SystemExit(f"--seeds and --peaks: need >= 1, got {args.seeds} and {args.peaks}")
     torch.set_num_threads(1)
-    single = functools.partial(fast_chunk, SPEC)
-    fused = functools.partial(fused_chunk, SPEC)
-    out = {"seeds": args.seeds, "updates_per_chunk": K, "batch": BATCH}
-    out["eager"] = measure(single, fused, args.seeds, args.repeats)
+    spec = dataclasses.replace(SPEC, peaks=args.peaks)
+    pair = (fast_chunk, fused_chunk) if args.peaks == 1 else (fast_chunk_peaks, fused_chunk_peaks)
+    single, fused = (functools.partial(f, spec) for f in pair)
+    out = {"seeds": args.seeds, "peaks": args.peaks, "updates_per_chunk": K, "batch": BATCH}
+    out["eager"] = measure(single, fused, args.seeds, args.repeats, args.peaks)
     compile_ = functools.partial(torch.compile, fullgraph=True, dynamic=False)
     fused_c = compile_(fused, options={"cpp_wrapper": True})
-    out["compiled"] = measure(compile_(single), fused_c, args.seeds, args.repeats)
+    out["compiled"] = measure(compile_(single), fused_c, args.seeds, args.repeats, args.peaks)
     print(json.dumps(out, indent=1))
 
 

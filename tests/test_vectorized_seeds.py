@@ -15,8 +15,8 @@ from test_train import TINY
 from marlmerge.cli import main
 from marlmerge.io import files
 from marlmerge.learners.common import sample_uniform
-from marlmerge.learners.quadq import FastSpec, fast_chunk
-from marlmerge.learners.quadq_fused import fused_chunk
+from marlmerge.learners.quadq import FastSpec, fast_chunk, fast_chunk_peaks
+from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
 from marlmerge.training.loop import make_replay
 from marlmerge.training.seeds import CHECKPOINT_NAME, train_seeds
 from marlmerge.training.sweep import sweep
@@ -27,10 +27,13 @@ SPEC = FastSpec(obs_dim=7, hidden=16, a_min=1e-3, a_span=5 - 1e-3, low=-4.5, spa
 P = 3 * 16 * 7 + 3 * 16 + 3 * 16 + 3
 
 
-def _chunks_agree(single, fused, n_seeds: int, chunks: int = 3, guided: bool = False) -> bool:
+def _chunks_agree(
+    single, fused, n_seeds: int, chunks: int = 3, guided: bool = False, heads: int = 3
+) -> bool:
     """S seeds through `fused` against each seed through `single`, chunk after chunk: the
     weights, both Adam moments and the losses, bit for bit (with an imitation `guide` if
-    `guided`)."""
+    `guided`; a network of `heads` heads, 3 K with K peaks)."""
+    P = heads * 16 * 7 + heads * 16 + heads * 16 + heads  # noqa: N806 (the module's P)
     gen = torch.Generator().manual_seed(n_seeds)
     flat = torch.randn(n_seeds, P, generator=gen) * 0.3
     target = flat + 0.01
@@ -74,12 +77,30 @@ def test_the_fused_expectile_loss_is_each_seeds_own_bit_for_bit_eager():
     assert not _chunks_agree(plain, fused, 1, chunks=1)
 
 
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"peak_bands": True}, {"peak_share": 0.1}, {"peak_share": 0.1, "peak_share_heads": "c"},
+     {"expectile": 0.25}],
+    ids=["plain", "bands", "share", "share-c", "expectile"],
+)  # fmt: skip
+def test_fused_peaks_are_each_seeds_own_update_bit_for_bit_eager(options):
+    spec = dataclasses.replace(SPEC, peaks=3, **options)
+    single, fused = (functools.partial(f, spec) for f in (fast_chunk_peaks, fused_chunk_peaks))
+    assert _chunks_agree(single, fused, 3, heads=9)
+    other = functools.partial(fast_chunk_peaks, dataclasses.replace(spec, peaks=3, gamma=0.9))
+    assert not _chunks_agree(other, fused, 1, chunks=1, heads=9)  # the check can fail
+
+
 @pytest.mark.slow
 def test_fused_update_is_each_seeds_own_update_bit_for_bit_compiled():
     compile_ = functools.partial(torch.compile, fullgraph=True, dynamic=False)
     single = compile_(functools.partial(fast_chunk, SPEC))
     fused = compile_(functools.partial(fused_chunk, SPEC))
     assert _chunks_agree(single, fused, 3)  # one seed: the whole-run tests below
+    spec = dataclasses.replace(SPEC, peaks=3)
+    single = compile_(functools.partial(fast_chunk_peaks, spec))
+    fused = compile_(functools.partial(fused_chunk_peaks, spec))
+    assert _chunks_agree(single, fused, 3, heads=9)
 
 
 def test_fast_sampling_draws_what_the_replay_draws():
@@ -138,6 +159,8 @@ SMALL = {**TINY, "total_sim_steps": 3_200, "eval_episodes": 6, "eval_worlds": 3,
             "shield_imitation": 1.0,
             "scenario": "grid_dense_adversarial",
         },
+        {"update_path": "fast", "peaks": 3},
+        {"update_path": "compiled", "peaks": 3},
     ],
     ids=[
         "quadq-fast",
@@ -147,6 +170,8 @@ SMALL = {**TINY, "total_sim_steps": 3_200, "eval_episodes": 6, "eval_worlds": 3,
         "quadq-shield",
         "quadq-judging",
         "quadq-imitation",
+        "quadq-peaks-fast",
+        "quadq-peaks-compiled",
     ],  # fmt: skip
 )
 def test_seeds_are_independent_and_one_seed_is_the_single_run(tmp_path, algo):
@@ -224,8 +249,6 @@ def test_seeds_refuse_a_seed_set_and_levels_without_sample_before_any_work(tmp_p
     args = ["train", "--seeds", "0-1", "--set", "levels.replay_fraction=0.5", "--out", str(out)]
     assert main(args) == 2
     assert "needs a scenario with [sample] ranges" in capsys.readouterr().err
-    assert main(["train", "--seeds", "0-1", "--set", "peaks=2", "--out", str(out)]) == 2
-    assert "peaks = 2 (a Q of several pieces)" in capsys.readouterr().err
     with pytest.raises(ValueError, match="only train"):
         sweep("cotrain", [0, 1], out, vectorized=True, progress=False)
     assert not out.exists()

@@ -33,7 +33,7 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 
 import torch
@@ -861,66 +861,82 @@ def fast_chunk_peaks(
     `spec.peak_bands` piece k's B lies in the k-th band of the range (`band_bounds`). Same
     arguments and return as `fast_chunk` (no imitation); the losses returned stay the TD
     losses."""
-    d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
-    b_low, b_span = spec.low, spec.span  # B_k = b_low + b_span * sigmoid(z_B_k)
-    if spec.peak_bands:
-        b_low, b_span = b_bounds(*band_bounds(spec.low, spec.span, kp), rows)  # [K] each
-    n = 3 * kp
-    rows_a, rows_b, rows_c = peak_rows(kp)
-    k, bsz = rows.shape[0], rows.shape[1]
+    d = spec.obs_dim
+    k = rows.shape[0]
     obs = rows[..., :d]  # [k, B, d]
     act = rows[..., d : d + 1]  # [k, B, 1]
     rew = rows[..., d + 1]  # [k, B]
     not_term = 1.0 - rows[..., d + 2]  # [k, B]
-    next_obs = rows[..., d + 3 :]  # [k, B, d]
-
-    # Target: max_k C_target_k(s'); only the C heads are evaluated.
-    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, 1, kp)
-    c_sl = slice(2 * kp * hd, n * hd)
-    h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, K H]
-    h_next = h_next.view(k, bsz, kp, hd)
-    v_next = ((h_next * tw2[rows_c]).sum(-1) + tb2[rows_c]).amax(-1)  # [k, B]
-    y = rew + spec.gamma * not_term * v_next  # [k, B]
-
-    w1, b1, w2, b2 = unflatten(flat, d, hd, 1, kp)
+    y = rew + spec.gamma * not_term * peaks_target(spec, target_flat, rows[..., d + 3 :])
+    w1, b1, w2, b2 = unflatten(flat, d, spec.hidden, 1, spec.peaks)
     losses = []
     for i in range(k):
-        x = obs[i]  # [B, d]
-        pre = torch.addmm(b1, x, w1.t())  # [B, 3K H]
-        h = torch.relu(pre).view(bsz, n, hd)  # [B, 3K, H]
-        z = (h * w2).sum(-1) + b2  # [B, 3K]
-        s_a = torch.sigmoid(z[:, rows_a])  # [B, K]
-        s_b = torch.sigmoid(z[:, rows_b])  # [B, K]
-        big_a = -(spec.a_min + spec.a_span * s_a)  # [B, K]
-        diff = b_low + b_span * s_b - act[i]  # B_k(s) - a, [B, K]
-        q_k = big_a * diff * diff + z[:, rows_c]  # [B, K]
-        q, best = q_k.max(-1)  # [B]
-        top = (torch.arange(kp, device=rows.device) == best.unsqueeze(-1)).to(q.dtype)  # [B, K]
-        delta = q - y[i]
-        w = td_weights(spec, delta)
-        wd = delta if w is None else w * delta
-        losses.append((wd * delta).mean())
-        g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
-        g_c = g  # dL/dC_k; g stays dL/dA_k, dL/dB_k
-        if spec.peak_share > 0.0:  # the losing pieces' own errors
-            g_c = g + (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y[i].unsqueeze(-1))
-            if spec.peak_share_heads == "abc":  # "c": they reach the levels only
-                g = g_c
-        dz = torch.cat(
-            [
-                g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
-                g * 2.0 * big_a * diff * b_span * s_b * (1.0 - s_b),
-                g_c,
-            ],
-            dim=-1,
-        )  # [B, 3K]
-        dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [3K, H]
-        db2 = dz.sum(0)  # [3K]
-        dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, n * hd), 0.0)
-        dw1_t = torch.mm(x.t(), dpre)  # [d, 3K H]
-        grad = torch.cat([dw1_t.t().reshape(-1), dpre.sum(0), dw2.reshape(-1), db2])  # [P]
+        loss, grad = peaks_update(spec, (w1, b1, w2, b2), obs[i], act[i], y[i])
+        losses.append(loss)
         adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
     return torch.stack(losses)
+
+
+def peaks_target(spec: FastSpec, target_flat: Tensor, next_obs: Tensor) -> Tensor:
+    """max_k C_target_k(s') [k, B] of the target network (flat [P]) at next_obs [k, B, d]:
+    only the C heads are evaluated."""
+    d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
+    k, bsz = next_obs.shape[:2]
+    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, 1, kp)
+    rows_c = peak_rows(kp)[2]
+    c_sl = slice(2 * kp * hd, 3 * kp * hd)
+    h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, K H]
+    h_next = h_next.view(k, bsz, kp, hd)
+    return ((h_next * tw2[rows_c]).sum(-1) + tb2[rows_c]).amax(-1)  # [k, B]
+
+
+def peaks_update(
+    spec: FastSpec, params: Sequence[Tensor], x: Tensor, act: Tensor, y: Tensor
+) -> tuple[Tensor, Tensor]:
+    """One update's TD loss (a scalar) and its gradient [P] for the K-piece network with
+    parameters `params` (w1, b1, w2, b2: `unflatten`'s views) on the minibatch x [B, d],
+    act [B, 1], targets y [B] (`fast_chunk_peaks`, which applies Adam)."""
+    hd, kp = spec.hidden, spec.peaks
+    w1, b1, w2, b2 = params
+    b_low, b_span = spec.low, spec.span  # B_k = b_low + b_span * sigmoid(z_B_k)
+    if spec.peak_bands:
+        b_low, b_span = b_bounds(*band_bounds(spec.low, spec.span, kp), x)  # [K] each
+    n = 3 * kp
+    rows_a, rows_b, rows_c = peak_rows(kp)
+    bsz = x.shape[0]
+    pre = torch.addmm(b1, x, w1.t())  # [B, 3K H]
+    h = torch.relu(pre).view(bsz, n, hd)  # [B, 3K, H]
+    z = (h * w2).sum(-1) + b2  # [B, 3K]
+    s_a = torch.sigmoid(z[:, rows_a])  # [B, K]
+    s_b = torch.sigmoid(z[:, rows_b])  # [B, K]
+    big_a = -(spec.a_min + spec.a_span * s_a)  # [B, K]
+    diff = b_low + b_span * s_b - act  # B_k(s) - a, [B, K]
+    q_k = big_a * diff * diff + z[:, rows_c]  # [B, K]
+    q, best = q_k.max(-1)  # [B]
+    top = (torch.arange(kp, device=x.device) == best.unsqueeze(-1)).to(q.dtype)  # [B, K]
+    delta = q - y
+    w = td_weights(spec, delta)
+    wd = delta if w is None else w * delta
+    loss = (wd * delta).mean()
+    g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
+    g_c = g  # dL/dC_k; g stays dL/dA_k, dL/dB_k
+    if spec.peak_share > 0.0:  # the losing pieces' own errors
+        g_c = g + (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y.unsqueeze(-1))
+        if spec.peak_share_heads == "abc":  # "c": they reach the levels only
+            g = g_c
+    dz = torch.cat(
+        [
+            g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
+            g * 2.0 * big_a * diff * b_span * s_b * (1.0 - s_b),
+            g_c,
+        ],
+        dim=-1,
+    )  # [B, 3K]
+    dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [3K, H]
+    db2 = dz.sum(0)  # [3K]
+    dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, n * hd), 0.0)
+    dw1_t = torch.mm(x.t(), dpre)  # [d, 3K H]
+    return loss, torch.cat([dw1_t.t().reshape(-1), dpre.sum(0), dw2.reshape(-1), db2])  # [P]
 
 
 COMPILE_NOTICE = (

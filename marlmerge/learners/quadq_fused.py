@@ -3,7 +3,8 @@
 The paper recipe's update (minibatch 32, a 7-64-3 network) costs per call, not per flop, so S
 independent seeds stepped together cost little more than one. `fused_chunk` is `fast_chunk`
 (`marlmerge.learners.quadq`) with every tensor given a leading seed dimension [S, ...] and
-batched matrix products; `FusedQuadQUpdates` steps S `FastQuadQUpdater`s with it.
+batched matrix products, `fused_chunk_peaks` the same of `fast_chunk_peaks` (a Q of K
+pieces); `FusedQuadQUpdates` steps S `FastQuadQUpdater`s with the one their spec takes.
 
 Bit for bit: each seed's weights after a fused call equal those of its own `fast_chunk` call,
 eager and compiled (`tests/test_vectorized_seeds.py` checks it). Three details buy that:
@@ -38,6 +39,8 @@ from marlmerge.learners.quadq import (
     FastSpec,
     adam_step,
     notice_if_slow,
+    peaks_target,
+    peaks_update,
     td_weights,
     unflatten,
 )
@@ -116,6 +119,42 @@ def _seed_loss(
     return (delta * delta).mean() if w is None else (w * delta * delta).mean()
 
 
+def fused_chunk_peaks(
+    spec: FastSpec,
+    flat: Tensor,
+    target_flat: Tensor,
+    exp_avg: Tensor,
+    exp_avg_sq: Tensor,
+    adam_scalars: Tensor,
+    rows: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """`fast_chunk_peaks` (K = `spec.peaks` > 1 quadratic pieces) for S seeds, with the
+    arguments and returns of `fused_chunk` (no imitation). Each seed's target and gradients
+    are its own run's functions (`peaks_target`, `peaks_update`) on its own slices, and
+    only Adam is batched: computed on [S, ...] tensors the pieces' sigmoids and products
+    round differently once compiled, and one graph of S seeds still costs about half of S
+    separate calls (`benchmarks/bench_seed_fusion.py --peaks 3`)."""
+    d, s_, k = spec.obs_dim, rows.shape[0], rows.shape[1]
+    obs = rows[..., :d]  # [S, k, B, d]
+    act = rows[..., d : d + 1]  # [S, k, B, 1]
+    rew = rows[..., d + 1]  # [S, k, B]
+    not_term = 1.0 - rows[..., d + 2]  # [S, k, B]
+    v_next = torch.stack(
+        [peaks_target(spec, target_flat[j], rows[j, ..., d + 3 :]) for j in range(s_)]
+    )
+    y = rew + spec.gamma * not_term * v_next  # [S, k, B]
+    params = unflatten(flat, d, spec.hidden, 1, spec.peaks)
+    losses, grads = [], []
+    for i in range(k):
+        each = [peaks_update(spec, [t[j] for t in params], obs[j, i], act[j, i], y[j, i])
+                for j in range(s_)]  # fmt: skip
+        grad = torch.stack([g for _, g in each])  # [S, P]
+        losses.append(torch.stack([loss for loss, _ in each]))
+        grads.append(grad)
+        adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
+    return torch.stack(losses, -1), torch.stack(grads, 1)
+
+
 class FusedQuadQUpdates:
     """Steps S `FastQuadQUpdater`s (one per seed, equal settings, at the same update count)
     with one `fused_chunk` call. Their weights, targets and Adam moments live in [S, P]
@@ -128,9 +167,11 @@ class FusedQuadQUpdates:
         teachers = {u.teacher is None for u in updaters}
         if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1 or len(teachers) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
-        if next(iter(specs)).action_dim != 1 or next(iter(specs)).peaks != 1:
+        spec = next(iter(specs))
+        if spec.action_dim != 1 or (spec.peaks > 1 and spec.imitation > 0.0):
             raise ValueError(
-                "fused updates of several seeds take one action component and one peak"
+                "fused updates of several seeds take one action component, and no imitation "
+                "with several peaks"
             )
         self.updaters = list(updaters)
         self.k = self.updaters[0].k
@@ -142,7 +183,8 @@ class FusedQuadQUpdates:
         self.exp_avg_sq = torch.stack([u.exp_avg_sq for u in us])
         for j, u in enumerate(us):
             u.share(self.flat[j], self.target_flat[j], self.exp_avg[j], self.exp_avg_sq[j])
-        fn: Callable[..., tuple[Tensor, Tensor]] = functools.partial(fused_chunk, specs.pop())
+        chunk = fused_chunk if spec.peaks == 1 else fused_chunk_peaks
+        fn: Callable[..., tuple[Tensor, Tensor]] = functools.partial(chunk, spec)
         self.compiled = compile
         # the C++ wrapper: the per-seed products make the Python one cost 0.5 ms a call
         opts = {"cpp_wrapper": True}

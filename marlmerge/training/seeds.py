@@ -93,12 +93,6 @@ def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
             f"{scen.ramp.flow_vph}); train its seeds one by one (marlmerge train --set seed=S) "
             "or with marlmerge sweep"
         )
-    if cfg.peaks > 1:
-        raise ValueError(
-            f"--seeds: peaks = {cfg.peaks} (a Q of several pieces), which the seeds' fused "
-            "update does not take; train its seeds one by one (marlmerge train --set seed=S) "
-            "or with marlmerge sweep"
-        )
     if scen.ego.chooses_join:
         raise ValueError(
             f"--seeds: scenario {cfg.scenario!r} sets ego.join = {scen.ego.join!r} (two action "
