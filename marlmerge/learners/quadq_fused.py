@@ -131,9 +131,9 @@ def fused_chunk_peaks(
     """`fast_chunk_peaks` (K = `spec.peaks` > 1 quadratic pieces) for S seeds, with the
     arguments and returns of `fused_chunk` (no imitation). Each seed's target and gradients
     are its own run's functions (`peaks_target`, `peaks_update`) on its own slices, and
-    only Adam is batched: computed on [S, ...] tensors the pieces' sigmoids and products
-    round differently once compiled, and one graph of S seeds still costs about half of S
-    separate calls (`benchmarks/bench_seed_fusion.py --peaks 3`)."""
+    only Adam is batched: computed on [S, ...] tensors, the compiled gradients came out a
+    last bit apart. One graph of 8 seeds costs 5.2x one seed's in
+    `benchmarks/bench_seed_fusion.py --peaks 3`, about 7x in training (docs/scale-out.md)."""
     d, s_, k = spec.obs_dim, rows.shape[0], rows.shape[1]
     obs = rows[..., :d]  # [S, k, B, d]
     act = rows[..., d : d + 1]  # [S, k, B, 1]
