@@ -12,9 +12,11 @@ inductor's C++ wrapper, as `FusedQuadQUpdates` compiles it):
   for bit (the weights after one chunk).
 
 With `--peaks K` (K > 1) the network has K quadratic pieces and the chunks are
-`fast_chunk_peaks` and `fused_chunk_peaks`.
+`fast_chunk_peaks` and `fused_chunk_peaks`. With `--cold`, 16 MB are written before each timed
+call, so the call starts with caches full of other data, as it does in training after an env
+step.
 
-    python benchmarks/bench_seed_fusion.py [--seeds 8] [--peaks 1] [--repeats 200]
+    python benchmarks/bench_seed_fusion.py [--seeds 8] [--peaks 1] [--cold] [--repeats 200]
 """
 
 from __future__ import annotations
@@ -33,10 +35,12 @@ from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
 SPEC = FastSpec(obs_dim=7, hidden=64, a_min=1e-3, a_span=5 - 1e-3, low=-4.5, span=7.0,
                  gamma=0.95, lr=1e-3, beta1=0.9, beta2=0.999, eps=1e-8)  # fmt: skip
 K, BATCH = 10, 32
+COLD_MB = 16  # --cold: data written between calls, beyond the caches
 
 
-def measure(single, fused, n_seeds: int, repeats: int, peaks: int = 1) -> dict:
+def measure(single, fused, n_seeds: int, repeats: int, peaks: int = 1, cold: bool = False) -> dict:
     gen = torch.Generator().manual_seed(0)
+    sweep = torch.zeros(COLD_MB * 2**18 if cold else 0)  # float32: 2^18 per MB
     p = sum(torch.Size(s).numel() for _, s in param_layout(SPEC.obs_dim, SPEC.hidden, 1, peaks))
     flat = torch.randn(n_seeds, p, generator=gen) * 0.1
     target = flat + 0.01
@@ -59,10 +63,13 @@ def measure(single, fused, n_seeds: int, repeats: int, peaks: int = 1) -> dict:
     times = {}
     for name, fn in (("one_seed", lambda: run_single(0)), ("fused", run_fused)):
         fn()
-        t0 = time.perf_counter()
+        total = 0.0
         for _ in range(repeats):
+            sweep.add_(1.0)  # with --cold: the caches hold other data, as after an env step
+            t0 = time.perf_counter()
             fn()
-        times[name] = 1e3 * (time.perf_counter() - t0) / repeats
+            total += time.perf_counter() - t0
+        times[name] = 1e3 * total / repeats
     return {"ms_per_chunk": times, "ratio": times["fused"] / times["one_seed"],
             "bit_identical": same}  # fmt: skip
 
@@ -72,6 +79,7 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=8)
     p.add_argument("--peaks", type=int, default=1, help="quadratic pieces of the network")
     p.add_argument("--repeats", type=int, default=200)
+    p.add_argument("--cold", action="store_true", help=f"write {COLD_MB} MB before each call")
     args = p.parse_args()
     if args.peaks < 1 or args.seeds < 1:
         raise SystemExit(f"--seeds and --peaks: need >= 1, got {args.seeds} and {args.peaks}")
@@ -80,10 +88,12 @@ def main() -> None:
     pair = (fast_chunk, fused_chunk) if args.peaks == 1 else (fast_chunk_peaks, fused_chunk_peaks)
     single, fused = (functools.partial(f, spec) for f in pair)
     out = {"seeds": args.seeds, "peaks": args.peaks, "updates_per_chunk": K, "batch": BATCH}
-    out["eager"] = measure(single, fused, args.seeds, args.repeats, args.peaks)
+    out["cold"] = args.cold
+    out["eager"] = measure(single, fused, args.seeds, args.repeats, args.peaks, args.cold)
     compile_ = functools.partial(torch.compile, fullgraph=True, dynamic=False)
     fused_c = compile_(fused, options={"cpp_wrapper": True})
-    out["compiled"] = measure(compile_(single), fused_c, args.seeds, args.repeats, args.peaks)
+    compiled = compile_(single)
+    out["compiled"] = measure(compiled, fused_c, args.seeds, args.repeats, args.peaks, args.cold)
     print(json.dumps(out, indent=1))
 
 
