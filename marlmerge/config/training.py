@@ -258,8 +258,7 @@ class TrainConfig(RunConfig):
     max_k A_k(s) (B_k(s) - a)^2 + C_k(s), acting with the B of the largest C
     (`marlmerge.learners.quadq.QuadraticQNet`). Several pieces can hold several good commands
     at once (brake and let a vehicle pass, or go), where one quadratic holds one. 1: the
-    paper's network. quadq with one action component, no `shield_imitation`, seeds trained one
-    by one (not `--seeds`)."""
+    paper's network. quadq with one action component, no `shield_imitation`."""
     peak_share: float = num(0.0, 0.0, 1.0)
     """With `peaks` > 1: the weight of each losing piece's own squared TD error at the replayed
     command. The envelope's error reaches only the piece that is largest there, so a piece

@@ -862,32 +862,32 @@ def fast_chunk_peaks(
     arguments and return as `fast_chunk` (no imitation); the losses returned stay the TD
     losses."""
     d = spec.obs_dim
-    k = rows.shape[0]
-    obs = rows[..., :d]  # [k, B, d]
-    act = rows[..., d : d + 1]  # [k, B, 1]
-    rew = rows[..., d + 1]  # [k, B]
-    not_term = 1.0 - rows[..., d + 2]  # [k, B]
-    y = rew + spec.gamma * not_term * peaks_target(spec, target_flat, rows[..., d + 3 :])
-    w1, b1, w2, b2 = unflatten(flat, d, spec.hidden, 1, spec.peaks)
+    y = peaks_targets(spec, target_flat, rows)  # [k, B]
+    params = unflatten(flat, d, spec.hidden, 1, spec.peaks)
     losses = []
-    for i in range(k):
-        loss, grad = peaks_update(spec, (w1, b1, w2, b2), obs[i], act[i], y[i])
+    for i in range(rows.shape[0]):
+        loss, grad = peaks_update(spec, params, rows[i, :, :d], rows[i, :, d : d + 1], y[i])
         losses.append(loss)
         adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
     return torch.stack(losses)
 
 
-def peaks_target(spec: FastSpec, target_flat: Tensor, next_obs: Tensor) -> Tensor:
-    """max_k C_target_k(s') [k, B] of the target network (flat [P]) at next_obs [k, B, d]:
-    only the C heads are evaluated."""
+def peaks_targets(spec: FastSpec, target_flat: Tensor, rows: Tensor) -> Tensor:
+    """The TD targets r + gamma (1 - terminal) max_k C_target_k(s') [k, B] of packed
+    minibatches rows [k, B, 2d + 3], from the target network (flat [P]): only its C heads are
+    evaluated."""
     d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
-    k, bsz = next_obs.shape[:2]
+    k, bsz = rows.shape[:2]
+    rew = rows[..., d + 1]  # [k, B]
+    not_term = 1.0 - rows[..., d + 2]  # [k, B]
+    next_obs = rows[..., d + 3 :]  # [k, B, d]
     tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, 1, kp)
     rows_c = peak_rows(kp)[2]
     c_sl = slice(2 * kp * hd, 3 * kp * hd)
     h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, K H]
     h_next = h_next.view(k, bsz, kp, hd)
-    return ((h_next * tw2[rows_c]).sum(-1) + tb2[rows_c]).amax(-1)  # [k, B]
+    v_next = ((h_next * tw2[rows_c]).sum(-1) + tb2[rows_c]).amax(-1)  # [k, B]
+    return rew + spec.gamma * not_term * v_next
 
 
 def peaks_update(
@@ -895,7 +895,7 @@ def peaks_update(
 ) -> tuple[Tensor, Tensor]:
     """One update's TD loss (a scalar) and its gradient [P] for the K-piece network with
     parameters `params` (w1, b1, w2, b2: `unflatten`'s views) on the minibatch x [B, d],
-    act [B, 1], targets y [B] (`fast_chunk_peaks`, which applies Adam)."""
+    act [B, 1], targets y [B] (`peaks_targets`; `fast_chunk_peaks` applies Adam)."""
     hd, kp = spec.hidden, spec.peaks
     w1, b1, w2, b2 = params
     b_low, b_span = spec.low, spec.span  # B_k = b_low + b_span * sigmoid(z_B_k)

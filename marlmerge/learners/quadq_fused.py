@@ -39,7 +39,7 @@ from marlmerge.learners.quadq import (
     FastSpec,
     adam_step,
     notice_if_slow,
-    peaks_target,
+    peaks_targets,
     peaks_update,
     td_weights,
     unflatten,
@@ -129,25 +129,20 @@ def fused_chunk_peaks(
     rows: Tensor,
 ) -> tuple[Tensor, Tensor]:
     """`fast_chunk_peaks` (K = `spec.peaks` > 1 quadratic pieces) for S seeds, with the
-    arguments and returns of `fused_chunk` (no imitation). Each seed's target and gradients
-    are its own run's functions (`peaks_target`, `peaks_update`) on its own slices, and
+    arguments and returns of `fused_chunk` (no imitation). Each seed's targets and gradients
+    are its own run's functions (`peaks_targets`, `peaks_update`) on its own slices, and
     only Adam is batched: computed on [S, ...] tensors, the compiled gradients came out a
     last bit apart. One graph of 8 seeds costs 5.2x one seed's in
     `benchmarks/bench_seed_fusion.py --peaks 3`, about 7x in training (docs/scale-out.md)."""
-    d, s_, k = spec.obs_dim, rows.shape[0], rows.shape[1]
-    obs = rows[..., :d]  # [S, k, B, d]
-    act = rows[..., d : d + 1]  # [S, k, B, 1]
-    rew = rows[..., d + 1]  # [S, k, B]
-    not_term = 1.0 - rows[..., d + 2]  # [S, k, B]
-    v_next = torch.stack(
-        [peaks_target(spec, target_flat[j], rows[j, ..., d + 3 :]) for j in range(s_)]
-    )
-    y = rew + spec.gamma * not_term * v_next  # [S, k, B]
+    d, s_ = spec.obs_dim, rows.shape[0]
+    y = torch.stack([peaks_targets(spec, target_flat[j], rows[j]) for j in range(s_)])  # [S, k, B]
     params = unflatten(flat, d, spec.hidden, 1, spec.peaks)
     losses, grads = [], []
-    for i in range(k):
-        each = [peaks_update(spec, [t[j] for t in params], obs[j, i], act[j, i], y[j, i])
-                for j in range(s_)]  # fmt: skip
+    for i in range(rows.shape[1]):
+        x, act = rows[:, i, :, :d], rows[:, i, :, d : d + 1]  # [S, B, d], [S, B, 1]
+        each = [
+            peaks_update(spec, [t[j] for t in params], x[j], act[j], y[j, i]) for j in range(s_)
+        ]
         grad = torch.stack([g for _, g in each])  # [S, P]
         losses.append(torch.stack([loss for loss, _ in each]))
         grads.append(grad)
@@ -168,11 +163,8 @@ class FusedQuadQUpdates:
         if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1 or len(teachers) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
         spec = next(iter(specs))
-        if spec.action_dim != 1 or (spec.peaks > 1 and spec.imitation > 0.0):
-            raise ValueError(
-                "fused updates of several seeds take one action component, and no imitation "
-                "with several peaks"
-            )
+        if spec.action_dim != 1:  # (several peaks take no imitation: their updaters refuse it)
+            raise ValueError("fused updates of several seeds take one action component")
         self.updaters = list(updaters)
         self.k = self.updaters[0].k
         us = self.updaters
