@@ -28,6 +28,7 @@ from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.modules import MLP
 
 from marlmerge.learners.base import Learner
+from marlmerge.learners.compiling import own_code
 from marlmerge.learners.quadq import notice_if_slow, unpack_rows
 from marlmerge.sim.observation import EGO_FEATURES
 
@@ -133,9 +134,9 @@ def make_mlp(in_features: int, out_features: int, hidden: int, layers: int) -> M
 
 
 def maybe_compile(fn: Callable[..., Any], compile: bool) -> Callable[..., Any]:
-    """``torch.compile(fn)`` (default mode; graph breaks at backward and the optimiser) or
-    ``fn`` itself."""
-    return torch.compile(fn) if compile else fn
+    """``torch.compile(fn)`` (default mode; graph breaks at backward and the optimiser; a copy of
+    ``fn`` with a code object of its own, `own_code`) or ``fn`` itself."""
+    return torch.compile(own_code(fn)) if compile else fn
 
 
 @contextlib.contextmanager

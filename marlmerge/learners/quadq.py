@@ -44,6 +44,7 @@ from torch import Tensor, nn
 from torchrl.objectives import HardUpdate, LossModule
 
 from marlmerge.config.training import PAPER_GAMMA, PEAK_SHARE_HEADS
+from marlmerge.learners.compiling import own_code
 
 __all__ = [
     "DEFAULT_ACTION_BOUNDS",
@@ -1079,7 +1080,7 @@ class FastQuadQUpdater:
         self._fn: Callable[..., Tensor] = self._eager_chunk
         self.compile_time_s: float | None = None
         if self._compile_kwargs is not None:
-            self._fn = torch.compile(self._eager_chunk, **self._compile_kwargs)
+            self._fn = torch.compile(own_code(self._eager_chunk), **self._compile_kwargs)
 
     def imitate(self, teacher: Teacher, weight: float) -> None:
         """Add an imitation term of `weight` to the loss (`fast_chunk`'s `guide`): before each

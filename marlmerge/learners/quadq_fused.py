@@ -31,6 +31,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from marlmerge.learners.compiling import own_code
 from marlmerge.learners.quadq import (
     HEAD_A,
     HEAD_B,
@@ -180,7 +181,11 @@ class FusedQuadQUpdates:
         self.compiled = compile
         # the C++ wrapper: the per-seed products make the Python one cost 0.5 ms a call
         opts = {"cpp_wrapper": True}
-        self._fn = torch.compile(fn, fullgraph=True, dynamic=False, options=opts) if compile else fn
+        self._fn = (
+            torch.compile(own_code(fn), fullgraph=True, dynamic=False, options=opts)
+            if compile
+            else fn
+        )
         self.compile_time_s: float | None = None
 
     @torch.no_grad()
