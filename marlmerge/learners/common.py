@@ -28,7 +28,6 @@ from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.modules import MLP
 
 from marlmerge.learners.base import Learner
-from marlmerge.learners.compiling import own_code
 from marlmerge.learners.quadq import notice_if_slow, unpack_rows
 from marlmerge.sim.observation import EGO_FEATURES
 
@@ -134,9 +133,12 @@ def make_mlp(in_features: int, out_features: int, hidden: int, layers: int) -> M
 
 
 def maybe_compile(fn: Callable[..., Any], compile: bool) -> Callable[..., Any]:
-    """``torch.compile(fn)`` (default mode; graph breaks at backward and the optimiser; a copy of
-    ``fn`` with a code object of its own, `own_code`) or ``fn`` itself."""
-    return torch.compile(own_code(fn)) if compile else fn
+    """``torch.compile(fn)`` (default mode; graph breaks at backward and the optimiser) or
+    ``fn`` itself. torch files the versions of the functions it resumes in after a break (and
+    of torch's own optimiser code) under code it shares between learners: past 8 learners with
+    distinct settings in one process it runs those parts uncompiled, with a warning (slower),
+    which `own_code` cannot prevent."""
+    return torch.compile(fn) if compile else fn
 
 
 @contextlib.contextmanager

@@ -5,10 +5,12 @@ compiles, at most `torch._dynamo.config.recompile_limit` (8) of them. Each disti
 into a graph as a constant (an updater's `FastSpec`: gamma, learning rate, bounds; a learner's
 own modules) is one version, and every updater of a kind compiled the same code (for a
 `functools.partial`, torch's own wrapper around it). So the ninth updater with new settings in
-one process, say a notebook trying nine discount factors, met the limit: with ``fullgraph=True``
-(the quadratic-Q fast paths) that is an error, otherwise torch quietly runs the function
-uncompiled. `own_code` wraps each updater's function in a function whose code object is its
-own, whose versions that updater alone fills.
+one process, say a notebook trying nine discount factors, met the limit, and with
+``fullgraph=True`` (the quadratic-Q fast paths, whose update is one graph) that is an error.
+`own_code` wraps each updater's function in a function whose code object is its own, whose
+versions that updater alone fills. (DQN's and TD3's steps break the graph at `backward` and
+in torch's optimiser, whose resumed code torch shares between learners whatever wraps them;
+past the limit torch runs those parts uncompiled, with a warning: `maybe_compile`.)
 """
 
 from __future__ import annotations
