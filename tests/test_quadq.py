@@ -667,3 +667,33 @@ def test_the_learner_refuses_fast_path_losses_on_the_torchrl_path(key, value):
             exploration=qq.GaussianExploration(1.0, 0.1, 100, LOW, HIGH), update_path="torchrl",
             updates_per_call=1, seed=0, sample_generator=_gen(0), peaks=2, **{key: value},
         )  # fmt: skip
+
+
+def test_learning_rate_decays_linearly_to_its_end_fraction_and_is_constant_by_default():
+    rep = _filled_replay(200, _gen(13))
+
+    def updater(**kw):
+        return qq.FastQuadQUpdater(
+            qq.QuadraticQLoss(_net()), rep, generator=_gen(14), updates_per_call=10,
+            target_update_period=100, lr=1e-2, **kw,
+        )  # fmt: skip
+
+    constant = updater()
+    assert all(constant.lr_at(t) == 1e-2 for t in (1, 50, 10**7))
+    decaying = updater(lr_end_fraction=0.1, lr_decay_updates=100)
+    assert decaying.lr_at(50) == pytest.approx(1e-2 * (1 - 0.9 * 0.5))
+    assert decaying.lr_at(100) == pytest.approx(1e-3) == decaying.lr_at(10**6)
+    decaying.num_updates = 40  # the scalars of updates 41-50 use their own rates
+    scalars = decaying.adam_scalars()
+    expected = [decaying.lr_at(t) / (1 - 0.9**t) for t in range(41, 51)]
+    assert torch.allclose(scalars[:, 0], torch.tensor(expected, dtype=scalars.dtype))
+    # the first chunk already moves less than the constant rate's
+    before = constant.flat.clone()
+    decaying.num_updates = 0
+    constant.step(rep.sample((10, 32), _gen(5)))
+    decaying.step(rep.sample((10, 32), _gen(5)))
+    assert not torch.equal(constant.flat, decaying.flat)
+    assert not torch.equal(before, decaying.flat)
+    for bad in (dict(lr_end_fraction=0.0), dict(lr_end_fraction=1.5), dict(lr_decay_updates=0)):
+        with pytest.raises(ValueError, match="lr_end_fraction"):
+            updater(**bad)

@@ -100,6 +100,27 @@ def test_a_run_of_two_banded_peaks_resumes_exactly_and_saves_a_policy_of_them(tm
     assert command.shape == (5, 1) and bool(((command > -4.5) & (command < 2.5)).all())
 
 
+@pytest.mark.slow
+def test_a_run_with_a_decaying_learning_rate_resumes_exactly(tmp_path):
+    cfg = TrainConfig(**{**TINY, "lr_end_fraction": 0.1, "eval_episodes": 0})
+    train(cfg, tmp_path / "a", progress=False)
+    train(cfg, tmp_path / "b", progress=False, stop_after_sim_steps=5_120)
+    train(cfg, tmp_path / "b", resume=True, progress=False)
+    assert _rows(tmp_path / "a" / "loss.csv") == _rows(tmp_path / "b" / "loss.csv")
+    constant = TrainConfig(**{**TINY, "eval_episodes": 0})
+    train(constant, tmp_path / "c", progress=False)
+    assert _rows(tmp_path / "a" / "loss.csv") != _rows(tmp_path / "c" / "loss.csv")
+
+
+def test_a_decaying_learning_rate_is_refused_where_it_has_no_schedule():
+    with pytest.raises(ValueError, match="lr_end_fraction = 0.1 schedules"):
+        TrainConfig(**{**TINY, "lr_end_fraction": 0.1, "update_path": "torchrl"})
+    with pytest.raises(ValueError, match="lr_end_fraction = 0.1 schedules"):
+        TrainConfig(**{**TINY, "lr_end_fraction": 0.1, "algorithm": "dqn"})
+    with pytest.raises(ValueError, match="lr_end_fraction"):
+        TrainConfig(**{**TINY, "lr_end_fraction": 0.0})
+
+
 def test_several_peaks_with_a_chosen_join_are_refused_before_anything_is_written(tmp_path):
     cfg = TrainConfig(**{**TINY, "peaks": 2, "scenario": "chosen_join"})
     with pytest.raises(ValueError, match="peaks = 2 shapes a Q of one action component"):

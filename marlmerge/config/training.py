@@ -253,6 +253,11 @@ class TrainConfig(RunConfig):
     gap that usually holds) weigh more: a risk-averse critic, and B(s) moves away from the
     commands whose returns spread downwards. 0.5: the paper's squared error. quadq on the
     fast or compiled path."""
+    lr_end_fraction: float = num(1.0, 0.001, 1.0)
+    """The quadratic Q's learning rate falls linearly from `lr` to `lr` x this over the run's
+    updates (`total_sim_steps` x `updates_per_sim_step`), so the last updates move the weights
+    less and the checkpoints late in a run differ less from each other. 1: the paper's constant
+    rate. quadq on the fast or compiled path."""
     peaks: int = num(1, 1, 8)
     """K quadratic pieces of the quadratic Q, which is then the largest of them: Q(s, a) =
     max_k A_k(s) (B_k(s) - a)^2 + C_k(s), acting with the B of the largest C
@@ -320,6 +325,13 @@ class TrainConfig(RunConfig):
                     f"td_expectile = {self.td_expectile} weighs the quadratic Q's fast-path "
                     "loss: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
                     f"{self.algorithm!r} on {self.update_path!r}",
+                ),
+                (
+                    self.lr_end_fraction == 1.0
+                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
+                    f"lr_end_fraction = {self.lr_end_fraction} schedules the quadratic Q's "
+                    "fast-path Adam: algorithm = 'quadq' with update_path 'fast' or 'compiled', "
+                    f"got {self.algorithm!r} on {self.update_path!r}",
                 ),
                 (
                     self.peaks == 1 or (self.algorithm == "quadq" and self.shield_imitation == 0.0),

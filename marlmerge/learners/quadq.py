@@ -998,6 +998,9 @@ class FastQuadQUpdater:
         peak_share: with several peaks, the weight of each losing piece's own TD error
             (`fast_chunk_peaks`); 0: the envelope's error alone.
         peak_share_heads: the losing pieces' heads that error reaches: "abc" or "c".
+        lr_end_fraction, lr_decay_updates: the learning rate of update t is lr x (1 - (1 -
+            fraction) x min(t / lr_decay_updates, 1)): a linear decay to lr x fraction (1: the
+            constant lr, computed as before). An input of the compiled chunk, not a constant.
     """
 
     def __init__(
@@ -1017,8 +1020,15 @@ class FastQuadQUpdater:
         expectile: float = 0.5,
         peak_share: float = 0.0,
         peak_share_heads: str = "abc",
+        lr_end_fraction: float = 1.0,
+        lr_decay_updates: int = 1,
     ) -> None:
         net = loss.value_network
+        if not 0.0 < lr_end_fraction <= 1.0 or lr_decay_updates < 1:
+            raise ValueError(
+                f"lr_end_fraction must be in (0, 1] and lr_decay_updates >= 1, got "
+                f"{lr_end_fraction} and {lr_decay_updates}"
+            )
         if not isinstance(net, QuadraticQNet):
             raise TypeError("FastQuadQUpdater needs a QuadraticQLoss built on a QuadraticQNet")
         if peak_share < 0.0 or (peak_share > 0.0 and net.peaks == 1):
@@ -1041,6 +1051,8 @@ class FastQuadQUpdater:
         self.k = int(updates_per_call)
         self.period = int(target_update_period)
         self.lr = float(lr)
+        self.lr_end_fraction = float(lr_end_fraction)
+        self.lr_decay_updates = int(lr_decay_updates)
         self.betas = (float(betas[0]), float(betas[1]))
         self.num_updates = 0
         self.spec = FastSpec(
@@ -1134,12 +1146,19 @@ class FastQuadQUpdater:
         self.exp_avg = exp_avg.copy_(self.exp_avg)
         self.exp_avg_sq = exp_avg_sq.copy_(self.exp_avg_sq)
 
+    def lr_at(self, t: int) -> float:
+        """The learning rate of update t (1-based): `lr`, or its linear decay."""
+        if self.lr_end_fraction == 1.0:
+            return self.lr
+        done = min(t / self.lr_decay_updates, 1.0)
+        return self.lr * (1.0 - (1.0 - self.lr_end_fraction) * done)
+
     def adam_scalars(self) -> Tensor:
-        """[k, 2]: (lr / (1 - beta1^t), sqrt(1 - beta2^t)) for the next k updates."""
+        """[k, 2]: (lr_t / (1 - beta1^t), sqrt(1 - beta2^t)) for the next k updates."""
         b1, b2 = self.betas
         vals = []
         for t in range(self.num_updates + 1, self.num_updates + self.k + 1):
-            vals.append((self.lr / (1.0 - b1**t), math.sqrt(1.0 - b2**t)))
+            vals.append((self.lr_at(t) / (1.0 - b1**t), math.sqrt(1.0 - b2**t)))
         return torch.tensor(vals, dtype=self.flat.dtype, device=self.flat.device)  # [k, 2]
 
     def state_dict(self) -> dict[str, Tensor | int]:

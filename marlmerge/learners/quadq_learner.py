@@ -49,6 +49,9 @@ class QuadQLearner(Learner):
             (`marlmerge.learners.quadq.fast_chunk_peaks`; fast paths only); 0: none.
         peak_bands: with several peaks, piece k's B in the k-th band of the command range.
         peak_share_heads: the losing pieces' heads their share reaches ("abc" or "c").
+        lr_schedule: (end fraction, updates): the learning rate falls linearly to lr x the
+            fraction over that many updates (`FastQuadQUpdater`; fast paths only); (1.0, 1):
+            constant.
     """
 
     algorithm = "quadq"
@@ -76,8 +79,14 @@ class QuadQLearner(Learner):
         peak_share: float = 0.0,
         peak_bands: bool = False,
         peak_share_heads: str = "abc",
+        lr_schedule: tuple[float, int] = (1.0, 1),
     ) -> None:
-        for name, value, plain in (("expectile", expectile, 0.5), ("peak_share", peak_share, 0.0)):
+        checked = (
+            ("expectile", expectile, 0.5),
+            ("peak_share", peak_share, 0.0),
+            ("lr_end_fraction", lr_schedule[0], 1.0),
+        )
+        for name, value, plain in checked:
             if value != plain and update_path == "torchrl":
                 raise ValueError(
                     f"{name} = {value} trains the fast path's loss: update_path 'fast' or "
@@ -102,6 +111,7 @@ class QuadQLearner(Learner):
         self.expectile = float(expectile)
         self.peak_share = float(peak_share)
         self.peak_share_heads = peak_share_heads
+        self.lr_schedule = lr_schedule
         self.sample_generator = sample_generator
         self._imitation: tuple[Teacher, float] | None = None
         self._build_updater()
@@ -137,6 +147,8 @@ class QuadQLearner(Learner):
             expectile=self.expectile,
             peak_share=self.peak_share,
             peak_share_heads=self.peak_share_heads,
+            lr_end_fraction=self.lr_schedule[0],
+            lr_decay_updates=self.lr_schedule[1],
         )
         if self._imitation is not None:
             self.fast.imitate(*self._imitation)

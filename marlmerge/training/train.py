@@ -140,11 +140,17 @@ def make_learner(
         sample_generator=sample_gen,
         device=cfg.device,
         expectile=cfg.td_expectile,
+        lr_schedule=lr_schedule(cfg),
         peaks=cfg.peaks,
         peak_share=cfg.peak_share,
         peak_bands=cfg.peak_bands,
         peak_share_heads=cfg.peak_share_heads,
     )
+
+
+def lr_schedule(cfg: TrainConfig) -> tuple[float, int]:
+    """(`lr_end_fraction`, the run's updates it is reached at): the quadratic Q's decay."""
+    return cfg.lr_end_fraction, max(int(cfg.total_sim_steps * cfg.updates_per_sim_step), 1)
 
 
 def make_ego_group(cfg: TrainConfig, scen: ScenarioConfig, obs_dim: int) -> LearningGroup:
