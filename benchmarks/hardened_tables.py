@@ -185,13 +185,20 @@ def main() -> None:
         nargs="+",
         help="grids' episodes.csv (their policies merged, a policy's episodes pooled)",
     )
-    p.add_argument("--policy", default="hardened", help="the policy the targets are for")
+    p.add_argument(
+        "--policy",
+        default=None,
+        help="the policy the targets are for (default: hardened, where the grids have it)",
+    )
     args = p.parse_args()
     g: dict[str, dict[str, np.ndarray]] = {}
     for path in args.episodes:  # a policy in several grids: their episodes together
         for policy, d in load(path).items():
             old = g.get(policy)
             g[policy] = d if old is None else {k: np.concatenate([old[k], d[k]]) for k in d}
+    if args.policy is not None and args.policy not in g:
+        p.error(f"--policy {args.policy!r}: not in the grids (their policies: {', '.join(g)})")
+    args.policy = args.policy or "hardened"
     for name in (None, *sets_in(g)):
         rows = table(g, name)
         if len(rows) > 2:
@@ -199,6 +206,8 @@ def main() -> None:
             print("\n".join(rows))
     for policy in (args.policy, *(q for q in g if q != args.policy and q.startswith(args.policy)
                                   and "@" not in q)):  # fmt: skip
+        if policy not in g:  # the default's targets, and a grid without it
+            continue
         print(f"\n### Targets: `{policy}`\n")
         print("\n".join(targets(g, policy)))
         rows = shared(g, policy)

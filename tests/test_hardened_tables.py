@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -68,3 +69,33 @@ def test_shared_refuses_seeds_that_did_not_drive_every_road_once():
     # as many episodes as seeds x roads, but each seed drove one road twice
     twice = {"p": _episodes(["a", "a", "b", "b"], ["c"] * 4, ["0", "0", "1", "1"], [1, 0, 1, 0])}
     assert ht.shared(twice, "p") == []
+
+
+def _grid_csv(path: Path, policies: list[str]) -> Path:
+    cols = "policy,run,condition,episode,success,collision,truncation,time_to_merge_s"
+    lines = [cols + ",max_abs_jerk_mps3"]
+    for policy in policies:
+        for s in range(2):
+            for e in range(3):
+                lines.append(f"{policy},runs/{policy}/seed_{s},heldout7 01,{e},1,0,0,12.0,5.0")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_tables_without_the_default_policy_and_a_policy_not_in_the_grids(
+    tmp_path, capsys, monkeypatch
+):
+    grid = str(_grid_csv(tmp_path / "episodes.csv", ["mine", "gap"]))
+    monkeypatch.setattr(sys, "argv", ["hardened_tables.py", grid])  # no `hardened` there: the tables, no targets
+    ht.main()
+    out = capsys.readouterr().out
+    assert "| mine |" in out and "Targets" not in out
+    monkeypatch.setattr(sys, "argv", ["hardened_tables.py", grid, "--policy", "mine"])
+    ht.main()
+    assert "### Targets: `mine`" in capsys.readouterr().out
+    monkeypatch.setattr(sys, "argv", ["hardened_tables.py", grid, "--policy", "hardened"])
+    with pytest.raises(SystemExit):
+        ht.main()
+    assert "--policy 'hardened': not in the grids (their policies: mine, gap)" in (
+        capsys.readouterr().err
+    )
