@@ -86,7 +86,8 @@ def test_tables_without_the_default_policy_and_a_policy_not_in_the_grids(
     tmp_path, capsys, monkeypatch
 ):
     grid = str(_grid_csv(tmp_path / "episodes.csv", ["mine", "gap"]))
-    monkeypatch.setattr(sys, "argv", ["hardened_tables.py", grid])  # no `hardened` there: the tables, no targets
+    # no `hardened` in the grid: its tables, no targets
+    monkeypatch.setattr(sys, "argv", ["hardened_tables.py", grid])
     ht.main()
     out = capsys.readouterr().out
     assert "| mine |" in out and "Targets" not in out
