@@ -657,11 +657,18 @@ def test_bad_expectile_and_peaks_settings_are_named(values, message):
         TrainConfig(**values)
 
 
-@pytest.mark.parametrize(("key", "value"), [("expectile", 0.3), ("peak_share", 0.1)])
-def test_the_learner_refuses_fast_path_losses_on_the_torchrl_path(key, value):
+@pytest.mark.parametrize(
+    ("key", "value", "named"),
+    [
+        ("expectile", 0.3, "expectile = 0.3"),
+        ("peak_share", 0.1, "peak_share = 0.1"),
+        ("lr_schedule", (0.1, 100), "lr_end_fraction = 0.1"),
+    ],
+)
+def test_the_learner_refuses_fast_path_settings_on_the_torchrl_path(key, value, named):
     from marlmerge.learners.quadq_learner import QuadQLearner
 
-    with pytest.raises(ValueError, match=f"{key} = {value} trains the fast path's loss"):
+    with pytest.raises(ValueError, match=f"{named} is a setting of the fast path's update"):
         QuadQLearner(
             OBS_DIM, 16, LOW, HIGH, gamma=0.95, lr=1e-3, target_update_period=10,
             exploration=qq.GaussianExploration(1.0, 0.1, 100, LOW, HIGH), update_path="torchrl",

@@ -89,8 +89,8 @@ class QuadQLearner(Learner):
         for name, value, plain in checked:
             if value != plain and update_path == "torchrl":
                 raise ValueError(
-                    f"{name} = {value} trains the fast path's loss: update_path 'fast' or "
-                    "'compiled', not 'torchrl'"
+                    f"{name} = {value} is a setting of the fast path's update: update_path "
+                    "'fast' or 'compiled', not 'torchrl'"
                 )
         init = torch.Generator().manual_seed(seed)
         self.obs_dim, self.hidden = obs_dim, hidden
