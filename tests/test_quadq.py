@@ -704,3 +704,18 @@ def test_learning_rate_decays_linearly_to_its_end_fraction_and_is_constant_by_de
     for bad in (dict(lr_end_fraction=0.0), dict(lr_end_fraction=1.5), dict(lr_decay_updates=0)):
         with pytest.raises(ValueError, match="lr_end_fraction"):
             updater(**bad)
+
+
+def test_fused_seeds_need_the_same_learning_rate_schedule():
+    from marlmerge.learners.quadq_fused import FusedQuadQUpdates
+
+    def updater(seed, **kw):
+        return qq.FastQuadQUpdater(
+            qq.QuadraticQLoss(_net(seed)), None, generator=_gen(seed), updates_per_call=10,
+            target_update_period=100, **kw,
+        )  # fmt: skip
+
+    schedule = dict(lr_end_fraction=0.1, lr_decay_updates=100)
+    FusedQuadQUpdates([updater(0, **schedule), updater(1, **schedule)], compile=False)
+    with pytest.raises(ValueError, match="the same learner settings"):
+        FusedQuadQUpdates([updater(0, **schedule), updater(1)], compile=False)

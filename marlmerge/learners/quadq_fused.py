@@ -161,7 +161,9 @@ class FusedQuadQUpdates:
     def __init__(self, updaters: Sequence[FastQuadQUpdater], compile: bool) -> None:
         specs = {u.spec for u in updaters}
         teachers = {u.teacher is None for u in updaters}
-        if len(specs) != 1 or len({(u.k, u.period) for u in updaters}) != 1 or len(teachers) != 1:
+        # the first updater's Adam scalars (its learning-rate schedule) serve every seed
+        steps = {(u.k, u.period, u.lr_end_fraction, u.lr_decay_updates) for u in updaters}
+        if len(specs) != 1 or len(steps) != 1 or len(teachers) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
         spec = next(iter(specs))
         if spec.action_dim != 1:  # (several peaks take no imitation: their updaters refuse it)
