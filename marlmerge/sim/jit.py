@@ -10,9 +10,11 @@
   run worlds on all cores (that loop alone uses the runtime). Every kernel takes the state
   tuple `S` (six arrays, about 70 machine words once unpacked), so a call that is not inlined
   costs more than a small kernel's work: the functions a simulator step calls (in `step`, the
-  lane lists, the per-step terms) are inlined into `substep` and `rollout_world`, which halves
-  the fixed cost of a world's step (`benchmarks/bench_core_against.py`). `substep` itself
-  stays a call: inlining it too doubles the cold compile for no measurable gain.
+  lane lists, the per-step terms) are inlined into `run_steps`, which holds the loop over a
+  call's k steps, so a world pays one such call per `rollout`, not one per step
+  (`benchmarks/bench_core_against.py`). `run_steps` writes the step's sequence out rather than
+  inlining a one-step function: Numba's IR inlining of a function that itself inlines others
+  made the cold compile about five times longer.
 
 With `NUMBA_DISABLE_JIT=1` every kernel runs as plain Python (slowly), for debugging.
 

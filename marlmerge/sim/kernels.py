@@ -1,6 +1,6 @@
 """The compiled calls of the core: what one env step needs, and the ego's and roster's life cycle.
 
-`rollout` holds the ego commands for `k` simulator steps (`marlmerge.sim.step.substep`) in every
+`rollout` holds the ego commands for `k` simulator steps (`marlmerge.sim.step.run_steps`) in every
 world and, after each step, adds up the named reward terms of the ego and of the highway agents
 (`marlmerge.sim.reward`) and records the ego's trace; at the end it writes the observations
 (`marlmerge.sim.observation` order). A world whose ego was running stops stepping within the
@@ -31,12 +31,9 @@ from marlmerge.sim.jit import kernel
 from marlmerge.sim.layout import (
     EGO,
     EGO_STREAM,
-    EV_EXITED,
-    EV_HIT,
     NEUTRAL,
     OUTCOME_NONE,
     OUTCOME_SUCCESS,
-    OUTCOME_TRUNCATED,
     P_DT,
     P_EGO_T,
     P_LC_COOLDOWN,
@@ -62,15 +59,6 @@ from marlmerge.sim.layout import (
     SC_T_HW,
     SC_V,
     SC_V0,
-    TR_A,
-    TR_AB,
-    TR_DB,
-    TR_DF,
-    TR_HIT,
-    TR_V,
-    TR_VB,
-    TR_VF,
-    TR_X,
     VF_A,
     VF_AGE,
     VF_GAP,
@@ -92,16 +80,11 @@ from marlmerge.sim.layout import (
     WF_AFTER_POL,
     WF_AFTER_T,
     WF_AFTER_V0,
-    WF_DB,
-    WF_DF,
     WF_EGO_CMD,
     WF_EGO_IN_LANE,
     WF_EGO_STALL,
     WF_EGO_T,
     WF_T,
-    WF_VB,
-    WF_VF,
-    WI_BACK,
     WI_COUNT_EGO,
     WI_COUNT_RIGHT,
     WI_EGO_COUNT,
@@ -109,7 +92,6 @@ from marlmerge.sim.layout import (
     WI_EGO_REAR,
     WI_EGO_STEPS,
     WI_FILTER_COUNT,
-    WI_FRONT,
     WI_HEAD_RIGHT,
     WI_N_ACTIVE,
     WI_N_RAMP,
@@ -122,18 +104,10 @@ from marlmerge.sim.layout import (
     WI_STEP_OUTCOME,
     WI_SUBSTEPS,
 )
-from marlmerge.sim.reward import (
-    add_ego_terms,
-    add_highway_terms,
-    ego_closeness,
-    ego_to_blame,
-    merge_gaps,
-)
 from marlmerge.sim.sensing import (
     agent_extended,
     ego_observation,
     sense_fill,
-    sense_measure,
     sensed_output,
 )
 from marlmerge.sim.step import (
@@ -141,87 +115,13 @@ from marlmerge.sim.step import (
     ego_gaps,
     gap_vehicles,
     neighbours,
-    substep,
+    run_steps,
 )
 
 NAN = math.nan
 INF = math.inf
 OVERFLOW = 1 << 32
 """Added to a driver's return value for each world that ran out of slots or drawn vehicles."""
-
-
-# ----------------------------------------------------------------------------------------------
-# After each simulator step: the ego's trace and terms, the highway agents' terms
-# ----------------------------------------------------------------------------------------------
-
-
-@kernel(inline=True)
-def _trace_row(S: tuple, b: int, trace: np.ndarray, i: int) -> None:
-    """The ego after a step, with the metrics' conventions (no gap vehicle: inf gap, nan speed)."""
-    vf, vi, wf, wi, lanes, sched = S
-    front, back = wi[b, WI_FRONT], wi[b, WI_BACK]
-    trace[b, i, TR_X] = vf[b, VF_X, EGO]
-    trace[b, i, TR_V] = vf[b, VF_V, EGO]
-    trace[b, i, TR_A] = vf[b, VF_A, EGO]
-    trace[b, i, TR_DF] = wf[b, WF_DF] if front >= 0 else INF
-    trace[b, i, TR_VF] = wf[b, WF_VF] if front >= 0 else NAN
-    trace[b, i, TR_DB] = wf[b, WF_DB] if back >= 0 else INF
-    trace[b, i, TR_VB] = wf[b, WF_VB] if back >= 0 else NAN
-    trace[b, i, TR_AB] = vf[b, VF_A, back] if back >= 0 else NAN
-    trace[b, i, TR_HIT] = 1.0 if vi[b, VI_FLAGS, EGO] & EV_HIT else 0.0
-
-
-@kernel(inline=True)
-def _roster_step(
-    S: tuple, b: int, p: np.ndarray, roster: np.ndarray, hw_terms: np.ndarray, live: bool
-) -> None:
-    """Add the step's terms of every counting highway agent (while the ego runs; with ramp flow,
-    of every ramp agent: the ego's `EGO_TERMS` for its own merge, with its realised acceleration
-    and no jerk term), then let go of the agents that left the road: towed away after a
-    collision, or off the downstream end (`RO_EXITED`)."""
-    vf, vi, wf, wi, lanes, sched = S
-    x_e, v_e = vf[b, VF_X, EGO], vf[b, VF_V, EGO]
-    close_f, close_b = ego_closeness(p, x_e, v_e, wf[b, WF_DF], wf[b, WF_DB], wf[b, WF_VB])
-    blamed = ego_to_blame(p, wi[b, WI_EGO_REAR] == 1, wf[b, WF_EGO_IN_LANE])
-    truncated = wi[b, WI_STEP_OUTCOME] == OUTCOME_TRUNCATED
-    flowing = p[P_RAMP_FLOW] > 0.0
-    for j in range(roster.shape[2]):
-        s = roster[RO_SLOT, b, j]
-        if roster[RO_MASK, b, j] == 0 or s <= EGO:
-            continue
-        same = vi[b, VI_ID, s] == roster[RO_ID, b, j]
-        if flowing and same:  # a ramp agent: the ego's terms, for its own merge
-            _, _, _, _, d_f, _, v_b, d_b = gap_vehicles(S, b, p, s)
-            d_f, d_b = merge_gaps(p, vi[b, VI_LANE, s] == RAMP, d_f, d_b)
-            add_ego_terms(
-                p, hw_terms[:, j], b, vf[b, VF_A, s], vf[b, VF_X, s], vf[b, VF_V, s], d_f, d_b,
-                v_b, (vi[b, VI_FLAGS, s] & EV_HIT) != 0, 0.0,
-            )  # fmt: skip
-        elif live and same:
-            add_highway_terms(
-                p,
-                hw_terms,
-                b,
-                j,
-                vf[b, VF_A, s],
-                vf[b, VF_V, s],
-                vf[b, VF_GAP, s],
-                (vi[b, VI_FLAGS, s] & EV_HIT) != 0,
-                s == wi[b, WI_EGO_PARTNER],
-                blamed,
-                s == wi[b, WI_FRONT],
-                s == wi[b, WI_BACK],
-                vf[b, VF_A, EGO],
-                truncated,
-                close_f,
-                close_b,
-            )
-        if not same or vi[b, VI_ACTIVE, s] == 0:
-            roster[RO_MASK, b, j] = 0
-            # a slot freed at the exit can be refilled by an arrival in the same step; a towed
-            # wreck's slot cannot (towing comes after the arrivals)
-            if not same or vi[b, VI_FLAGS, s] & EV_EXITED:
-                roster[RO_EXITED, b, j] = 1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -326,7 +226,7 @@ def rollout_world(
     call_out: np.ndarray,
 ) -> int:
     """Up to `k` simulator steps of world `b` with the ego command ego_cmd[b] (acceleration,
-    join: `substep`) and the agents' roster_cmd[b] [K, 2] (see the module docstring). Outputs:
+    join: `run_steps`) and the agents' roster_cmd[b] [K, 2] (see the module docstring). Outputs:
     ego_terms[b] [len(EGO_TERMS)], hw_terms[b] [K, 8], trace[b, :k] [TR_COLS], the
     observations, and per world `WI_SUBSTEPS`, the outcome reached (`WI_STEP_OUTCOME`) with the
     ego's collision partner, also copied to call_out[:, b] (the `WI_CALL` columns). Returns
@@ -342,29 +242,9 @@ def rollout_world(
             hw_terms[b, j, c] = 0.0
     outcome, partner, rear, steps, ego_steps = OUTCOME_NONE, -1, 0, 0, 0
     if step_mask[b]:
-        started = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
-        for i in range(k):
-            live = vi[b, VI_ACTIVE, EGO] == 1 and wi[b, WI_OUTCOME] == OUTCOME_NONE
-            if started and not live:
-                break
-            a_prev, first = wf[b, WF_EGO_CMD], wf[b, WF_EGO_T] <= 0.0  # the ego's last step
-            ego_hit = substep(S, b, p, ego_cmd[b, 0], ego_cmd[b, 1], roster, roster_cmd)
-            if p[P_SENSE_ON] > 0.0 and vi[b, VI_ACTIVE, EGO] == 1:
-                sense_measure(S, X, b, p)
-            _trace_row(S, b, trace, i)
-            if live:
-                ego_steps += 1
-                d_f, d_b = merge_gaps(p, vi[b, VI_LANE, EGO] == RAMP, wf[b, WF_DF], wf[b, WF_DB])
-                add_ego_terms(
-                    p, ego_terms, b, wf[b, WF_EGO_CMD], vf[b, VF_X, EGO], vf[b, VF_V, EGO],
-                    d_f, d_b, wf[b, WF_VB], ego_hit,
-                    0.0 if first else wf[b, WF_EGO_CMD] - a_prev,
-                )  # fmt: skip
-            _roster_step(S, b, p, roster, hw_terms, live)
-            if wi[b, WI_STEP_OUTCOME] != OUTCOME_NONE:
-                outcome = wi[b, WI_STEP_OUTCOME]
-                partner, rear = wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR]
-            steps = i + 1
+        outcome, partner, rear, steps, ego_steps = run_steps(
+            S, X, b, p, k, ego_cmd, roster, roster_cmd, ego_terms, hw_terms, trace
+        )
     wi[b, WI_STEP_OUTCOME], wi[b, WI_EGO_PARTNER], wi[b, WI_EGO_REAR] = outcome, partner, rear
     wi[b, WI_SUBSTEPS], wi[b, WI_EGO_STEPS] = steps, ego_steps
     for c in range(call_out.shape[0]):  # [5, B]: the call's WI_CALL columns, while they are hot
