@@ -1,4 +1,4 @@
-"""One simulator step of one world, compiled: the dynamics, written once.
+"""The simulator steps of one world, compiled: the dynamics, written once.
 
 `run_steps` advances world `b` by `k` steps of `dt_s`, each in this order:
 
@@ -8,11 +8,14 @@
    external commands for controlled highway agents, the ego's command; NaN: plain IDM) and the
    ballistic update (a vehicle that stops within the step stops where v reaches 0), in one sweep
    per lane; then the lane changes;
-4. exits downstream, arrivals at the entrance (queued until a safe entry exists), the ego joining
+3. exits downstream, arrivals at the entrance (queued until a safe entry exists), the ego joining
    the right lane once it overlaps it (or when it chooses, `ego.join = "chosen"`: `joins_now`);
-5. collisions: overlaps of consecutive vehicles in a lane; mainline wrecks are towed away at
+4. collisions: overlaps of consecutive vehicles in a lane; mainline wrecks are towed away at
    once, the ego's stay until its episode is closed;
-6. the ego's episode clock and outcome, and its gap vehicles after the step.
+5. the ego's episode clock and outcome, and its gap vehicles after the step.
+
+After each step it also takes the ego sensor's measurement (`marlmerge.sim.sensing`) and
+records the ego's trace row, its reward terms and the highway agents' (`marlmerge.sim.reward`).
 
 Arrays and rows: `marlmerge.sim.layout`; lane lists: `marlmerge.sim.lanes`.
 """
