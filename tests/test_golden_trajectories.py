@@ -2,9 +2,10 @@
 
 Refactors of the core (`marlmerge.sim`) must leave every reported result as it is. The other
 tests check behaviour and that a run repeats itself; this one checks that a run repeats the
-committed one, for the paper's mode, a drawn-traffic preset (sampled roads, drivers, lapses)
-and ramp flow: per call of `rollout`, each world's traffic (sum of positions and speeds of its
-vehicles, and how many), the ego's observation and reward terms, and its outcome.
+committed one, for the paper's mode, `hardened_mix` (traffic drawn per road: flows, limits,
+drivers, adversaries; the extended observation), `lapses` (drivers' attention lapses) and ramp
+flow: every 10 calls of `rollout`, each world's traffic (sum of positions and speeds of its
+vehicles, and how many), and the ego's observations, reward terms and outcomes summed so far.
 
 A change that is meant to change the simulation bumps the env version and regenerates every
 result (`docs/results.md#remaking-every-result`); then the reference is rewritten with
@@ -39,6 +40,7 @@ def scenarios() -> dict[str, ScenarioConfig]:
     return {
         "paper": ScenarioConfig(),
         "hardened_mix": resolve_config("hardened_mix"),
+        "lapses": resolve_config("lapses"),
         "ramp_flow": ScenarioConfig().replace(**{"ramp.flow_vph": 600.0}),
     }
 
