@@ -118,7 +118,6 @@ from marlmerge.sim.step import (
     run_steps,
 )
 
-NAN = math.nan
 INF = math.inf
 OVERFLOW = 1 << 32
 """Added to a driver's return value for each world that ran out of slots or drawn vehicles."""
