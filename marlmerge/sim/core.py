@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from marlmerge.config import ScenarioConfig, check_count, from_dict, latency_steps, to_dict
-from marlmerge.sim import kernels
+from marlmerge.sim import draws, kernels
 from marlmerge.sim import layout as L
 from marlmerge.sim.layout import EGO, EGO_STREAM, OUTCOME_NONE, RAMP
 from marlmerge.sim.observation import (
@@ -53,6 +53,7 @@ attention lapses; 5: four lapse classes. Older states still load."""
 _ARRAYS = ("vf", "vi", "wf", "wi", "lanes", "sched", "ring", "noise")
 _ARRAYS_V1 = _ARRAYS[:6]
 _NO_AGENTS = np.zeros((1 << 16, 0), dtype=bool)
+_BITGEN_FUNCTIONS = draws.bitgen_functions()
 _NO_AGENTS.flags.writeable = False
 
 _announced: set[str] = set()
@@ -126,6 +127,10 @@ class TrafficCore:
             done = out.ego_outcome != OUTCOME_NONE
             core.next_ego(done)                  # the next ramp vehicle departs in finished worlds
     """
+
+    compiled_draws = True
+    """Draw arrivals and departures ahead in compiled code (`marlmerge.sim.draws`); False: through
+    the streams' NumPy calls, the same numbers (the reference `tests/test_draws.py` compares)."""
 
     def __init__(
         self,
@@ -308,6 +313,32 @@ class TrafficCore:
         rows = np.arange(self.batch_size) if rows is None else rows
         if rows.size:
             self._reserve_slots(rows, self._slots_needed(rows, k))
+        if self.streams.tilted is None and self.compiled_draws:
+            self._draw_ahead(k, rows)
+        else:
+            self._draw_ahead_numpy(k, rows)
+        if self._noisy:
+            for b in rows.tolist():
+                self._top_up_noise(b, k + 2)
+        self._served_k[self._group_rows(rows)] = k
+
+    def _draw_ahead(self, k: int, rows: np.ndarray) -> None:
+        """`_serve`'s draws of arrivals and departures in one compiled call
+        (`marlmerge.sim.draws`), growing the rings when one is full."""
+        states, params = self.streams.compiled_inputs(rows)
+        flowing, start = bool(self.cfg.ramp.flowing), 0
+        while True:
+            start = draws.draw_ahead(
+                self.wf, self.wi, self.sched, rows, start, k, self.cfg.sim.dt_s, flowing,
+                states, _BITGEN_FUNCTIONS, params,
+            )  # fmt: skip
+            if start < 0:
+                return
+            self._grow_rings(2 * self.sched.shape[2])
+
+    def _draw_ahead_numpy(self, k: int, rows: np.ndarray) -> None:
+        """`_draw_ahead` through the streams' NumPy calls: under a proposal (its tilted draws),
+        and the reference the compiled draws are tested against (`compiled_draws = False`)."""
         dt = self.cfg.sim.dt_s
         for b in rows.tolist():
             horizon = self.wf[b, L.WF_T] + (k + 1) * dt
@@ -330,9 +361,7 @@ class TrafficCore:
             while self.wi[b, L.WI_COUNT_RIGHT + EGO_STREAM] < 2:
                 self._reserve_ring(b, EGO_STREAM)
                 self._push(b, EGO_STREAM, self.streams.departures(b))
-            self._top_up_noise(b, k + 2)
             self.wi[b, L.WI_NEED] = 0
-        self._served_k[self._group_rows(rows)] = k
 
     def _slots_needed(self, rows: np.ndarray | slice, k: int) -> np.ndarray:
         """Slots the worlds `rows` need before a call of `k` steps: their vehicles, the most

@@ -35,6 +35,7 @@ from numba import njit
 
 _PACKAGE = Path(__file__).resolve().parent.parent
 KERNEL_SOURCES = (
+    "sim/draws.py",
     "sim/drivers.py",
     "sim/entrance.py",
     "sim/jit.py",

@@ -30,6 +30,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from marlmerge.config import MPH_TO_MPS, ScenarioConfig, to_dict
+from marlmerge.sim import draws as dr
 from marlmerge.sim.drivers import entry_speed
 from marlmerge.sim.layout import (
     EGO_STREAM,
@@ -52,7 +53,7 @@ from marlmerge.sim.proposal import (
     natural_profiles,
 )
 
-CHUNK = 32
+CHUNK = dr.CHUNK
 """Vehicles (or measurements) drawn per stream at a time."""
 FILL_STREAM = 3
 N_STREAMS = 4
@@ -126,6 +127,26 @@ def _mix_cdf(mix: tuple[float, float, float]) -> np.ndarray:
     return cdf
 
 
+def draw_params(cfg: ScenarioConfig) -> np.ndarray:
+    """[DP_COLS] a scenario's parameters of `arrivals`, `departures` and `ramp_arrivals`, as
+    `marlmerge.sim.draws` reads them (the same numbers those methods compute)."""
+    d, flow, ramp_flow = cfg.driver, cfg.traffic.flow_vph_per_lane, cfg.ramp.flow_vph
+    mean, std = cfg.traffic.entry_speed_mps
+    row = np.zeros(dr.DP_COLS)
+    row[dr.DP_FLOW_ON] = 1.0 if flow > 0 else 0.0
+    row[dr.DP_MEAN_GAP_S] = 3600.0 / flow if flow > 0 else 0.0
+    row[[dr.DP_ENTRY_MEAN, dr.DP_ENTRY_STD]] = mean, std
+    row[[dr.DP_ENTRY_LO, dr.DP_ENTRY_HI]] = mean - 2 * std, mean + 2 * std
+    row[[dr.DP_V0_LO, dr.DP_V0_HI]] = d.desired_speed_factor
+    row[dr.DP_V_LIMIT] = cfg.road.speed_limit_mps
+    row[[dr.DP_HW_LO, dr.DP_HW_HI]] = d.time_headway_s
+    row[[dr.DP_POL_LO, dr.DP_POL_HI]] = d.politeness
+    row[dr.DP_CDF0 : dr.DP_CDF2 + 1] = _mix_cdf(d.mix)
+    row[[dr.DP_START_LO, dr.DP_START_HI]] = cfg.ego.start_speed_mps
+    row[dr.DP_RAMP_GAP_S] = 3600.0 / ramp_flow if ramp_flow > 0 else 0.0
+    return row
+
+
 class Streams:
     """The generators of B worlds and what they draw."""
 
@@ -142,6 +163,10 @@ class Streams:
             proposal.check(cfg)
         self.tilted = None if proposal is None else TiltedDraws(proposal, batch_size)
         """With a proposal: its draws, log-likelihood ratios and statistics per world."""
+        self._states = np.zeros((batch_size, EGO_STREAM + 1), dtype=np.uint64)
+        self._states_of: list[Any] = [None] * batch_size
+        self._params = np.zeros((batch_size, dr.DP_COLS))
+        self._params_of: list[Any] = [None] * batch_size
 
     def seed(self, rows: np.ndarray, sequences: list[np.random.SeedSequence]) -> None:
         for b, seq in zip(rows, sequences, strict=True):
@@ -158,6 +183,28 @@ class Streams:
         gens = [np.random.default_rng(c) for c in seq.spawn(self.n_streams)]
         gens[SCENARIO_STREAM] = self.gens[b][SCENARIO_STREAM]
         self.gens[b] = gens
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A copy (pickle, deepcopy) has generators of its own: their state addresses are
+        taken again on its first draws, never carried over from this object's."""
+        state = self.__dict__.copy()
+        state["_states_of"] = [None] * len(self._states_of)
+        return state
+
+    def compiled_inputs(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What `marlmerge.sim.draws.draw_ahead` reads: the state addresses of the lanes' and
+        the ego stream's generators [B, 3] and each world's draw parameters [B, DP_COLS],
+        brought up to date for the worlds `rows` (a world's generators are replaced when it is
+        seeded, its scenario when it draws one)."""
+        for b in rows.tolist():
+            gens, cfg = self.gens[b], self.cfgs[b]
+            if self._states_of[b] is not gens:
+                self._states[b] = [dr.state_address(g) for g in gens[: EGO_STREAM + 1]]
+                self._states_of[b] = gens
+            if self._params_of[b] is not cfg:
+                self._params[b] = draw_params(cfg)
+                self._params_of[b] = cfg
+        return self._states, self._params
 
     # ------------------------------------------------------------------ drawn vehicles
     def _drivers(
