@@ -54,7 +54,7 @@ from marlmerge.sim.layout import (
 )
 
 CHUNK = 32
-"""Vehicles drawn per stream at a time (`marlmerge.sim.streams.CHUNK`)."""
+"""Vehicles drawn per stream at a time (`Streams` draws the same chunks)."""
 
 # columns of a world's draw parameters, [B, DP_COLS] (`Streams.draw_params`)
 (

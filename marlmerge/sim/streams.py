@@ -8,7 +8,9 @@ the first four as they were); with `[sample]` a sixth, its drawn traffic; with a
 (`driver.lapse_rate_per_h`) a seventh, the key of each road's lapse draws. Arrivals and
 departures are drawn ahead in fixed chunks (`CHUNK` vehicles: time, speed and the driver's
 parameters) into the world's `sched` ring, measurement errors in chunks of `CHUNK` measurements
-into its noise ring, which the kernels consume; the stream of numbers a world sees is therefore
+into its noise ring, which the kernels consume. The arrivals and departures are drawn by
+`marlmerge.sim.draws` in one compiled call, from the same generators and bit for bit as
+`arrivals`, `ramp_arrivals` and `departures` below draw them. The stream of numbers a world sees is
 fixed by its seed alone, whatever the batch it runs in, the action repeat, or when the chunks
 happen to be drawn. One exception: a reset without a seed (a new road mid-run, as `[sample]`'s
 `resample_every_egos` makes) throws away what its world had drawn ahead, and it draws ahead
