@@ -14,9 +14,9 @@ rounds (so that the shared host's load drifts the same for both); medians and th
     python benchmarks/bench_core_against.py --against ../marlmerge-before --batches 1024 --flows ''
 
 The default window (20 warm-up calls, 300 timed: the first 128 s of simulated time) runs mostly
-on the arrivals a core draws at its start. Later in a run each call also draws ahead in Python
-for the worlds that need it, which weighs most in light traffic: `--warmup 400` times that
-steady state ([speed](../docs/architecture.md#speed)).
+on the arrivals a core draws at its start. Later in a run each call also draws ahead for the
+worlds that need it (`marlmerge.sim.draws`): `--warmup 400` times that steady state
+([speed](../docs/architecture.md#speed)).
 
 The other tree's kernels compile on its first measurement (cached on disk afterwards): run
 once with `--rounds 1 --calls 5` to warm both caches first when timing matters.
