@@ -13,14 +13,17 @@ made before (`Streams.arrivals`, `ramp_arrivals`, `departures`, which stay as th
 for the proposal's tilted draws); `tests/test_draws.py` checks them against NumPy.
 
 The C functions are called through their addresses, passed in at run time (`bitgen_functions`),
-so the compiled code holds no address of this process and can be cached on disk.
+so the compiled code holds no address of this process and can be cached on disk. With
+`NUMBA_DISABLE_JIT=1` (every kernel as plain Python) they are called through `ctypes`.
 """
 
 from __future__ import annotations
 
+import ctypes
+
 import numpy as np
 from llvmlite import ir
-from numba import types
+from numba import config, types
 from numba.extending import intrinsic
 
 # NumPy's ziggurat tables, as Numba's `Generator` support carries them (private to Numba, whose
@@ -84,8 +87,6 @@ DP_COLS = 19
 def bitgen_functions() -> np.ndarray:
     """[2] the addresses of PCG64's `next_uint64` and `next_double` (the same C functions for
     every PCG64 generator; each call passes the generator's own state)."""
-    import ctypes
-
     c = np.random.PCG64(0).ctypes
     return np.array(
         [ctypes.cast(c.next_uint64, ctypes.c_void_p).value,
@@ -101,8 +102,7 @@ def state_address(g: np.random.Generator) -> int:
     return int(g.bit_generator.ctypes.state_address)
 
 
-@intrinsic
-def _call_u64(tyctx, fn, state):  # type: ignore[no-untyped-def]
+def _call_u64_intrinsic(tyctx, fn, state):  # type: ignore[no-untyped-def]
     """uint64 fn(state) for a C function's address `fn` and a bit generator's state address."""
     sig = types.uint64(types.uint64, types.uint64)
 
@@ -113,8 +113,7 @@ def _call_u64(tyctx, fn, state):  # type: ignore[no-untyped-def]
     return sig, codegen
 
 
-@intrinsic
-def _call_double(tyctx, fn, state):  # type: ignore[no-untyped-def]
+def _call_double_intrinsic(tyctx, fn, state):  # type: ignore[no-untyped-def]
     """double fn(state), as `_call_u64`."""
     sig = types.float64(types.uint64, types.uint64)
 
@@ -123,6 +122,21 @@ def _call_double(tyctx, fn, state):  # type: ignore[no-untyped-def]
         return builder.call(builder.inttoptr(args[0], fnty.as_pointer()), (args[1],))
 
     return sig, codegen
+
+
+if config.DISABLE_JIT:  # the kernels run as Python: the same C functions, called through ctypes
+    _U64 = ctypes.CFUNCTYPE(ctypes.c_uint64, ctypes.c_void_p)
+    _DOUBLE = ctypes.CFUNCTYPE(ctypes.c_double, ctypes.c_void_p)
+
+    def _call_u64(fn: int, state: int) -> np.uint64:
+        return np.uint64(_U64(int(fn))(int(state)))
+
+    def _call_double(fn: int, state: int) -> float:
+        return float(_DOUBLE(int(fn))(int(state)))
+
+else:
+    _call_u64 = intrinsic(_call_u64_intrinsic)
+    _call_double = intrinsic(_call_double_intrinsic)
 
 
 @kernel(inline=True)
