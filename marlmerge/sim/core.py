@@ -53,8 +53,9 @@ attention lapses; 5: four lapse classes. Older states still load."""
 _ARRAYS = ("vf", "vi", "wf", "wi", "lanes", "sched", "ring", "noise")
 _ARRAYS_V1 = _ARRAYS[:6]
 _NO_AGENTS = np.zeros((1 << 16, 0), dtype=bool)
-_BITGEN_FUNCTIONS = draws.bitgen_functions()
 _NO_AGENTS.flags.writeable = False
+_BITGEN_FUNCTIONS = draws.bitgen_functions()
+"""The C functions of NumPy's PCG64 that the compiled draws call (`marlmerge.sim.draws`)."""
 
 _announced: set[str] = set()
 _said = threading.Event()

@@ -59,7 +59,7 @@ from marlmerge.sim.layout import (
 CHUNK = 32
 """Vehicles drawn per stream at a time (`Streams` draws the same chunks)."""
 
-# columns of a world's draw parameters, [B, DP_COLS] (`Streams.draw_params`)
+# columns of a world's draw parameters, [B, DP_COLS] (`marlmerge.sim.streams.draw_params`)
 (
     DP_FLOW_ON,  # 1: the lanes have arrivals (flow > 0)
     DP_MEAN_GAP_S,  # 3600 / flow: the mean of the exponential time gaps, s
