@@ -719,3 +719,62 @@ def test_fused_seeds_need_the_same_learning_rate_schedule():
     FusedQuadQUpdates([updater(0, **schedule), updater(1, **schedule)], compile=False)
     with pytest.raises(ValueError, match="the same learner settings"):
         FusedQuadQUpdates([updater(0, **schedule), updater(1)], compile=False)
+
+
+def _flushing_now() -> bool:
+    """Whether subnormal floats are flushed to zero on this thread at the moment."""
+    return bool((torch.tensor([1e-39], dtype=torch.float32) * 1.0).item() == 0.0)
+
+
+def test_flushed_updates_flush_only_inside_the_update():
+    """`flush_denormals`: the chunk runs with subnormals flushed, the process computes as
+    before around it; without the option nothing is flushed, and a short run keeps its bits
+    (no subnormal arises in its first updates)."""
+    from marlmerge.learners.quadq_fused import FusedQuadQUpdates
+
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU cannot flush subnormals")
+    rep = _filled_replay(200, _gen(13))
+
+    def updater(seed, **kw):
+        return qq.FastQuadQUpdater(
+            qq.QuadraticQLoss(_net(seed)), rep, generator=_gen(14), updates_per_call=10,
+            target_update_period=100, **kw,
+        )  # fmt: skip
+
+    for make in (
+        lambda on: updater(0, flush_denormals=on),
+        lambda on: FusedQuadQUpdates([updater(0, flush_denormals=on)], compile=False),
+    ):
+        seen: dict[bool, list[bool]] = {}
+        outs = {}
+        for on in (False, True):
+            up = make(on)
+            inner = up._fn
+            seen[on] = []
+
+            def spy(*args, _inner=inner, _seen=seen[on]):
+                _seen.append(_flushing_now())
+                return _inner(*args)
+
+            up._fn = spy
+            for _ in range(3):
+                rows = rep.sample((10, 32), _gen(5))
+                up.step(rows if isinstance(up, qq.FastQuadQUpdater) else rows[None])
+                assert not _flushing_now()
+            outs[on] = up.flat.clone()
+        assert seen == {False: [False] * 3, True: [True] * 3}
+        assert torch.equal(outs[False], outs[True])
+
+
+def test_fused_seeds_need_the_same_flush():
+    from marlmerge.learners.quadq_fused import FusedQuadQUpdates
+
+    def updater(seed, **kw):
+        return qq.FastQuadQUpdater(
+            qq.QuadraticQLoss(_net(seed)), None, generator=_gen(seed), updates_per_call=10,
+            target_update_period=100, **kw,
+        )  # fmt: skip
+
+    with pytest.raises(ValueError, match="the same learner settings"):
+        FusedQuadQUpdates([updater(0, flush_denormals=True), updater(1)], compile=False)

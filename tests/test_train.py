@@ -121,6 +121,27 @@ def test_a_decaying_learning_rate_is_refused_where_it_has_no_schedule():
         TrainConfig(**{**TINY, "lr_end_fraction": 0.0})
 
 
+def test_flushed_updates_train_the_same_run_and_are_refused_elsewhere(tmp_path):
+    """A tiny run with `flush_denormals` gives the plain run's bits (no subnormal arises in
+    it); the option is refused where there is no fast-path update to flush."""
+    cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
+    train(cfg, tmp_path / "plain", progress=False)
+    flushed = TrainConfig(**{**TINY, "eval_episodes": 0, "flush_denormals": True})
+    train(flushed, tmp_path / "flushed", progress=False)
+    for name in ("loss.csv", "egos.csv"):
+        plain = (tmp_path / "plain" / name).read_bytes()
+        assert plain == (tmp_path / "flushed" / name).read_bytes(), name
+    nets = [
+        files.load(tmp_path / run / "policy.pt")["policy_state"]["net"]
+        for run in ("plain", "flushed")
+    ]
+    assert nets[0].keys() == nets[1].keys()
+    assert all(torch.equal(nets[0][k], nets[1][k]) for k in nets[0])
+    for bad in ({"update_path": "torchrl"}, {"algorithm": "dqn"}):
+        with pytest.raises(ValueError, match="flush_denormals = true flushes"):
+            TrainConfig(**{**TINY, "flush_denormals": True, **bad})
+
+
 def test_several_peaks_with_a_chosen_join_are_refused_before_anything_is_written(tmp_path):
     cfg = TrainConfig(**{**TINY, "peaks": 2, "scenario": "chosen_join"})
     with pytest.raises(ValueError, match="peaks = 2 shapes a Q of one action component"):

@@ -258,6 +258,13 @@ class TrainConfig(RunConfig):
     updates (`total_sim_steps` x `updates_per_sim_step`), so the last updates move the weights
     less and the checkpoints late in a run differ less from each other. 1: the paper's constant
     rate. quadq on the fast or compiled path."""
+    flush_denormals: bool = False
+    """The quadratic Q's updates run with subnormal floats flushed to zero (only the update's
+    call: `marlmerge.learners.quadq.denormals_flushed`). Dead units' Adam moments decay into
+    the subnormal range, where the CPU's arithmetic is many times slower: on one host the
+    update of 8 seeds in one process took 37 s instead of 58 s (200,000 steps), with the same
+    bits in every run checked (`docs/scale-out.md`). Off by default, as it changes the
+    arithmetic wherever a subnormal arises. quadq on the fast or compiled path."""
     peaks: int = num(1, 1, 8)
     """K quadratic pieces of the quadratic Q, which is then the largest of them: Q(s, a) =
     max_k A_k(s) (B_k(s) - a)^2 + C_k(s), acting with the B of the largest C
@@ -332,6 +339,13 @@ class TrainConfig(RunConfig):
                     f"lr_end_fraction = {self.lr_end_fraction} schedules the quadratic Q's "
                     "fast-path Adam: algorithm = 'quadq' with update_path 'fast' or 'compiled', "
                     f"got {self.algorithm!r} on {self.update_path!r}",
+                ),
+                (
+                    not self.flush_denormals
+                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
+                    "flush_denormals = true flushes the quadratic Q's fast-path updates: "
+                    "algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
+                    f"{self.algorithm!r} on {self.update_path!r}",
                 ),
                 (
                     self.peaks == 1 or (self.algorithm == "quadq" and self.shield_imitation == 0.0),

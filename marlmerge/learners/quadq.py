@@ -959,6 +959,22 @@ def notice_if_slow(message: str = COMPILE_NOTICE, after_s: float = 2.0) -> Itera
         timer.cancel()
 
 
+@contextlib.contextmanager
+def denormals_flushed(on: bool) -> Iterator[None]:
+    """With `on`, subnormal floats are flushed to zero inside the block
+    (`torch.set_flush_denormal`) and kept again after it, so the rest of the process computes
+    as before. Dead units' Adam moments decay into the subnormal range, where the CPU's
+    arithmetic is many times slower (`docs/scale-out.md`)."""
+    if not on:
+        yield
+        return
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
+
+
 class FastQuadQUpdater:
     """Engineered update path for :class:`QuadraticQLoss` with a :class:`QuadraticQNet`.
 
@@ -1001,6 +1017,9 @@ class FastQuadQUpdater:
         lr_end_fraction, lr_decay_updates: the learning rate of update t is lr x (1 - (1 -
             fraction) x min(t / lr_decay_updates, 1)): a linear decay to lr x fraction (1: the
             constant lr, computed as before). An input of the compiled chunk, not a constant.
+        flush_denormals: run each chunk with subnormal floats flushed to zero
+            (`denormals_flushed`): faster once dead units' moments are subnormal, and a change
+            of the arithmetic wherever a subnormal arises (off: as before, bit for bit).
     """
 
     def __init__(
@@ -1022,6 +1041,7 @@ class FastQuadQUpdater:
         peak_share_heads: str = "abc",
         lr_end_fraction: float = 1.0,
         lr_decay_updates: int = 1,
+        flush_denormals: bool = False,
     ) -> None:
         net = loss.value_network
         if not 0.0 < lr_end_fraction <= 1.0 or lr_decay_updates < 1:
@@ -1053,6 +1073,7 @@ class FastQuadQUpdater:
         self.lr = float(lr)
         self.lr_end_fraction = float(lr_end_fraction)
         self.lr_decay_updates = int(lr_decay_updates)
+        self.flush_denormals = bool(flush_denormals)
         self.betas = (float(betas[0]), float(betas[1]))
         self.num_updates = 0
         self.spec = FastSpec(
@@ -1187,11 +1208,12 @@ class FastQuadQUpdater:
         extra = () if self.teacher is None else (self.guide(rows),)
         if self.compile_time_s is None and self._fn is not self._eager_chunk:
             t0 = time.perf_counter()
-            with notice_if_slow():
+            with notice_if_slow(), denormals_flushed(self.flush_denormals):
                 losses = self._fn(*args, rows, *extra)
             self.compile_time_s = time.perf_counter() - t0
         else:
-            losses = self._fn(*args, rows, *extra)
+            with denormals_flushed(self.flush_denormals):
+                losses = self._fn(*args, rows, *extra)
         self.advance()
         return losses
 

@@ -39,6 +39,7 @@ from marlmerge.learners.quadq import (
     FastQuadQUpdater,
     FastSpec,
     adam_step,
+    denormals_flushed,
     notice_if_slow,
     peaks_targets,
     peaks_update,
@@ -162,7 +163,10 @@ class FusedQuadQUpdates:
         specs = {u.spec for u in updaters}
         teachers = {u.teacher is None for u in updaters}
         # the first updater's Adam scalars (its learning-rate schedule) serve every seed
-        steps = {(u.k, u.period, u.lr_end_fraction, u.lr_decay_updates) for u in updaters}
+        steps = {
+            (u.k, u.period, u.lr_end_fraction, u.lr_decay_updates, u.flush_denormals)
+            for u in updaters
+        }
         if len(specs) != 1 or len(steps) != 1 or len(teachers) != 1:
             raise ValueError("fused updates need seeds with the same learner settings")
         spec = next(iter(specs))
@@ -202,13 +206,15 @@ class FusedQuadQUpdates:
         args: tuple[Tensor, ...] = (*state, us[0].adam_scalars(), rows)
         if us[0].teacher is not None:  # each seed's teacher labels its own minibatches
             args = (*args, torch.stack([u.guide(rows[j]) for j, u in enumerate(us)]))  # type: ignore[misc]
+        flush = us[0].flush_denormals
         if self.compiled and self.compile_time_s is None:
             t0 = time.perf_counter()
-            with notice_if_slow():
+            with notice_if_slow(), denormals_flushed(flush):
                 losses, _ = self._fn(*args)
             self.compile_time_s = time.perf_counter() - t0
         else:
-            losses, _ = self._fn(*args)
+            with denormals_flushed(flush):
+                losses, _ = self._fn(*args)
         for u in us:
             u.advance()
         return losses

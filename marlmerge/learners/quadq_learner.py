@@ -80,11 +80,13 @@ class QuadQLearner(Learner):
         peak_bands: bool = False,
         peak_share_heads: str = "abc",
         lr_schedule: tuple[float, int] = (1.0, 1),
+        flush_denormals: bool = False,
     ) -> None:
         checked = (
             ("expectile", expectile, 0.5),
             ("peak_share", peak_share, 0.0),
             ("lr_end_fraction", lr_schedule[0], 1.0),
+            ("flush_denormals", flush_denormals, False),
         )
         for name, value, plain in checked:
             if value != plain and update_path == "torchrl":
@@ -112,6 +114,7 @@ class QuadQLearner(Learner):
         self.peak_share = float(peak_share)
         self.peak_share_heads = peak_share_heads
         self.lr_schedule = lr_schedule
+        self.flush_denormals = bool(flush_denormals)
         self.sample_generator = sample_generator
         self._imitation: tuple[Teacher, float] | None = None
         self._build_updater()
@@ -149,6 +152,7 @@ class QuadQLearner(Learner):
             peak_share_heads=self.peak_share_heads,
             lr_end_fraction=self.lr_schedule[0],
             lr_decay_updates=self.lr_schedule[1],
+            flush_denormals=self.flush_denormals,
         )
         if self._imitation is not None:
             self.fast.imitate(*self._imitation)

@@ -141,6 +141,7 @@ def make_learner(
         device=cfg.device,
         expectile=cfg.td_expectile,
         lr_schedule=lr_schedule(cfg),
+        flush_denormals=cfg.flush_denormals,
         peaks=cfg.peaks,
         peak_share=cfg.peak_share,
         peak_bands=cfg.peak_bands,
