@@ -962,9 +962,10 @@ def notice_if_slow(message: str = COMPILE_NOTICE, after_s: float = 2.0) -> Itera
 @contextlib.contextmanager
 def denormals_flushed(on: bool) -> Iterator[None]:
     """With `on`, subnormal floats are flushed to zero inside the block
-    (`torch.set_flush_denormal`) and kept again after it, so the rest of the process computes
-    as before. Dead units' Adam moments decay into the subnormal range, where the CPU's
-    arithmetic is many times slower (`docs/scale-out.md`)."""
+    (`torch.set_flush_denormal`, on the calling thread) and kept again after it, so the rest
+    of the process computes as before (a flush set for the whole process beforehand is
+    cleared too: torch cannot tell whether one was). Dead units' Adam moments decay into the
+    subnormal range, where the CPU's arithmetic is many times slower (`docs/scale-out.md`)."""
     if not on:
         yield
         return
