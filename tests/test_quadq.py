@@ -706,15 +706,18 @@ def test_learning_rate_decays_linearly_to_its_end_fraction_and_is_constant_by_de
             updater(**bad)
 
 
+def _seed_updater(seed, replay=None, **kw):
+    """A fast-path updater of seed `seed`'s network: k = 10, target period 100."""
+    return qq.FastQuadQUpdater(
+        qq.QuadraticQLoss(_net(seed)), replay, generator=_gen(seed if replay is None else 14),
+        updates_per_call=10, target_update_period=100, **kw,
+    )  # fmt: skip
+
+
 def test_fused_seeds_need_the_same_learning_rate_schedule():
     from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 
-    def updater(seed, **kw):
-        return qq.FastQuadQUpdater(
-            qq.QuadraticQLoss(_net(seed)), None, generator=_gen(seed), updates_per_call=10,
-            target_update_period=100, **kw,
-        )  # fmt: skip
-
+    updater = _seed_updater
     schedule = dict(lr_end_fraction=0.1, lr_decay_updates=100)
     FusedQuadQUpdates([updater(0, **schedule), updater(1, **schedule)], compile=False)
     with pytest.raises(ValueError, match="the same learner settings"):
@@ -735,16 +738,9 @@ def test_flushed_updates_flush_only_inside_the_update():
     if not torch.set_flush_denormal(False):
         pytest.skip("this CPU cannot flush subnormals")
     rep = _filled_replay(200, _gen(13))
-
-    def updater(seed, **kw):
-        return qq.FastQuadQUpdater(
-            qq.QuadraticQLoss(_net(seed)), rep, generator=_gen(14), updates_per_call=10,
-            target_update_period=100, **kw,
-        )  # fmt: skip
-
     for make in (
-        lambda on: updater(0, flush_denormals=on),
-        lambda on: FusedQuadQUpdates([updater(0, flush_denormals=on)], compile=False),
+        lambda on: _seed_updater(0, rep, flush_denormals=on),
+        lambda on: FusedQuadQUpdates([_seed_updater(0, rep, flush_denormals=on)], compile=False),
     ):
         seen: dict[bool, list[bool]] = {}
         outs = {}
@@ -770,11 +766,5 @@ def test_flushed_updates_flush_only_inside_the_update():
 def test_fused_seeds_need_the_same_flush():
     from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 
-    def updater(seed, **kw):
-        return qq.FastQuadQUpdater(
-            qq.QuadraticQLoss(_net(seed)), None, generator=_gen(seed), updates_per_call=10,
-            target_update_period=100, **kw,
-        )  # fmt: skip
-
     with pytest.raises(ValueError, match="the same learner settings"):
-        FusedQuadQUpdates([updater(0, flush_denormals=True), updater(1)], compile=False)
+        FusedQuadQUpdates([_seed_updater(0, flush_denormals=True), _seed_updater(1)], compile=False)
