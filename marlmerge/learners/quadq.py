@@ -1207,13 +1207,13 @@ class FastQuadQUpdater:
             raise ValueError(f"rows must hold k={self.k} minibatches, got {rows.shape[0]}")
         args = (self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, self.adam_scalars())
         extra = () if self.teacher is None else (self.guide(rows),)
-        if self.compile_time_s is None and self._fn is not self._eager_chunk:
-            t0 = time.perf_counter()
-            with notice_if_slow(), denormals_flushed(self.flush_denormals):
-                losses = self._fn(*args, rows, *extra)
-            self.compile_time_s = time.perf_counter() - t0
-        else:
-            with denormals_flushed(self.flush_denormals):
+        with denormals_flushed(self.flush_denormals):
+            if self.compile_time_s is None and self._fn is not self._eager_chunk:
+                t0 = time.perf_counter()
+                with notice_if_slow():
+                    losses = self._fn(*args, rows, *extra)
+                self.compile_time_s = time.perf_counter() - t0
+            else:
                 losses = self._fn(*args, rows, *extra)
         self.advance()
         return losses

@@ -206,14 +206,13 @@ class FusedQuadQUpdates:
         args: tuple[Tensor, ...] = (*state, us[0].adam_scalars(), rows)
         if us[0].teacher is not None:  # each seed's teacher labels its own minibatches
             args = (*args, torch.stack([u.guide(rows[j]) for j, u in enumerate(us)]))  # type: ignore[misc]
-        flush = us[0].flush_denormals
-        if self.compiled and self.compile_time_s is None:
-            t0 = time.perf_counter()
-            with notice_if_slow(), denormals_flushed(flush):
-                losses, _ = self._fn(*args)
-            self.compile_time_s = time.perf_counter() - t0
-        else:
-            with denormals_flushed(flush):
+        with denormals_flushed(us[0].flush_denormals):
+            if self.compiled and self.compile_time_s is None:
+                t0 = time.perf_counter()
+                with notice_if_slow():
+                    losses, _ = self._fn(*args)
+                self.compile_time_s = time.perf_counter() - t0
+            else:
                 losses, _ = self._fn(*args)
         for u in us:
             u.advance()
