@@ -2,7 +2,7 @@
 
 The paper recipe's update (batch 32, a small MLP) costs per call, not per flop, so S seeds
 updated by one batched call should cost little more than one. This times the fast path's chunk
-(`marlmerge.learners.quadq.fast_chunk`) against the fused chunk that `marlmerge train --seeds`
+(`marlmerge.learners.quadq_fast.fast_chunk`) against the fused chunk that `marlmerge train --seeds`
 uses (`marlmerge.learners.quadq_fused.fused_chunk`), eager and compiled (the fused one with
 inductor's C++ wrapper, as `FusedQuadQUpdates` compiles it):
 
@@ -29,7 +29,7 @@ import time
 
 import torch
 
-from marlmerge.learners.quadq import FastSpec, fast_chunk, fast_chunk_peaks, param_layout
+from marlmerge.learners.quadq_fast import FastSpec, fast_chunk, fast_chunk_peaks, param_layout
 from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
 
 SPEC = FastSpec(obs_dim=7, hidden=64, a_min=1e-3, a_span=5 - 1e-3, low=-4.5, span=7.0,

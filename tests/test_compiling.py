@@ -8,6 +8,7 @@ import torch
 from test_quadq import _filled_replay, _gen, _net
 from torch._dynamo.exc import FailOnRecompileLimitHit
 
+import marlmerge.learners.quadq_fast as qf
 from marlmerge.learners import quadq as qq
 from marlmerge.learners.compiling import own_code
 
@@ -53,7 +54,7 @@ def test_compiled_updaters_with_distinct_settings_in_one_process():
     with torch._dynamo.config.patch(recompile_limit=1):
         for gamma in (0.9, 0.95):
             loss = qq.QuadraticQLoss(_net(), gamma=gamma)
-            fast = qq.FastQuadQUpdater(
+            fast = qf.FastQuadQUpdater(
                 loss,
                 _filled_replay(200, _gen(13)),
                 generator=_gen(14),

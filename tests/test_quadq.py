@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDict
 
 import marlmerge.learners.quadq as qq
+import marlmerge.learners.quadq_fast as qf
 
 LOW, HIGH = qq.DEFAULT_ACTION_BOUNDS
 OBS_DIM = 7
@@ -55,8 +56,8 @@ def _perturb_target(loss: qq.QuadraticQLoss, g: torch.Generator) -> None:
             t.add_(0.05 * torch.randn(t.shape, generator=g))
 
 
-def _filled_replay(n: int, g: torch.Generator, join: bool = False) -> qq.TransitionReplay:
-    rep = qq.TransitionReplay(2 * n, OBS_DIM, action_dim=2 if join else 1)
+def _filled_replay(n: int, g: torch.Generator, join: bool = False) -> qf.TransitionReplay:
+    rep = qf.TransitionReplay(2 * n, OBS_DIM, action_dim=2 if join else 1)
     rep.extend_tensordict(_batch(n, g, join=join))
     return rep
 
@@ -262,7 +263,7 @@ def test_fast_updater_copies_target_every_p_updates():
     p, k = 6, 2
     loss = qq.QuadraticQLoss(_net())
     rep = _filled_replay(200, _gen(13))
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         loss, rep, generator=_gen(14), updates_per_call=k, target_update_period=p, lr=1e-2
     )
     tgt = loss.target_value_network_params
@@ -276,7 +277,7 @@ def test_fast_updater_copies_target_every_p_updates():
     fast.step()
     assert not _same(tgt, loss.value_network_params)
     with pytest.raises(ValueError):
-        qq.FastQuadQUpdater(
+        qf.FastQuadQUpdater(
             loss, rep, generator=_gen(0), updates_per_call=4, target_update_period=6
         )
 
@@ -296,7 +297,7 @@ def _fast_vs_reference(k: int, compile: bool = False, join: bool = False, peaks:
         _perturb_target(loss, _gen(16))
         pair.append(loss)
     fast_loss, ref_loss = pair
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         fast_loss,
         rep,
         generator=_gen(17),
@@ -354,7 +355,7 @@ def test_peak_share_matches_autograd_of_the_envelope_plus_the_losing_pieces_erro
     )
     for loss in (fast_loss, ref_loss):
         _perturb_target(loss, _gen(23))
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         fast_loss, rep, generator=_gen(0), updates_per_call=k, target_update_period=10 * k,
         peak_share=share, peak_share_heads=heads,
     )  # fmt: skip
@@ -389,7 +390,7 @@ def test_a_piece_that_never_wins_learns_only_with_a_peak_share(share):
         net.head_bias[5] -= 1e3  # piece 1's C far below: it never wins at any command
     loss = qq.QuadraticQLoss(net, gamma=0.95)
     rep = _filled_replay(200, _gen(24))
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         loss, rep, generator=_gen(0), updates_per_call=5, target_update_period=50,
         peak_share=share,
     )  # fmt: skip
@@ -399,9 +400,9 @@ def test_a_piece_that_never_wins_learns_only_with_a_peak_share(share):
     assert moved[[0, 2, 4]].min() > 0  # the winning piece learns either way
     assert (moved[[1, 3, 5]].min() > 0) == (share > 0)
     with pytest.raises(ValueError, match=r"peak_share = 0.1 .*\(this network has 1\)"):
-        qq.FastQuadQUpdater(qq.QuadraticQLoss(_net()), None, generator=_gen(0), peak_share=0.1)
+        qf.FastQuadQUpdater(qq.QuadraticQLoss(_net()), None, generator=_gen(0), peak_share=0.1)
     with pytest.raises(ValueError, match="peak_share_heads must be one of .* got 'b'"):
-        qq.FastQuadQUpdater(qq.QuadraticQLoss(net), None, generator=_gen(0), peak_share_heads="b")
+        qf.FastQuadQUpdater(qq.QuadraticQLoss(net), None, generator=_gen(0), peak_share_heads="b")
 
 
 def test_banded_pieces_keep_their_commands_apart():
@@ -431,7 +432,7 @@ def test_one_peak_is_the_paper_network():
         assert torch.equal(value, paper.state_dict()[key]), key
     rows = _filled_replay(200, _gen(5)).sample((5, 32), _gen(6))
     updaters = [
-        qq.FastQuadQUpdater(qq.QuadraticQLoss(net), None, generator=_gen(0), updates_per_call=5)
+        qf.FastQuadQUpdater(qq.QuadraticQLoss(net), None, generator=_gen(0), updates_per_call=5)
         for net in (paper, one)
     ]
     assert torch.equal(updaters[0].step(rows), updaters[1].step(rows))
@@ -469,7 +470,7 @@ def test_several_peaks_are_refused_where_they_do_not_fit():
     with pytest.raises(ValueError, match="peaks must be >= 1"):
         _net(peaks=0)
     loss = qq.QuadraticQLoss(_net(peaks=2), gamma=0.95)
-    fast = qq.FastQuadQUpdater(loss, None, generator=_gen(0), updates_per_call=5)
+    fast = qf.FastQuadQUpdater(loss, None, generator=_gen(0), updates_per_call=5)
     with pytest.raises(ValueError, match="imitation takes a network of one peak"):
         fast.imitate(_teacher, 1.0)
 
@@ -501,7 +502,7 @@ def test_fast_path_compiled_matches_lossmodule():
 def test_fast_updater_state_dict_roundtrip():
     loss = qq.QuadraticQLoss(_net())
     rep = _filled_replay(100, _gen(18))
-    fast = qq.FastQuadQUpdater(loss, rep, generator=_gen(19), updates_per_call=2)
+    fast = qf.FastQuadQUpdater(loss, rep, generator=_gen(19), updates_per_call=2)
     fast.step()
     state = fast.state_dict()
     fast.step()
@@ -511,7 +512,7 @@ def test_fast_updater_state_dict_roundtrip():
 
 
 def test_transition_replay_ring_and_layout():
-    rep = qq.TransitionReplay(5, OBS_DIM)
+    rep = qf.TransitionReplay(5, OBS_DIM)
     td = _batch(7, _gen(20))
     rep.extend_tensordict(td[:3])
     assert len(rep) == 3
@@ -558,7 +559,7 @@ def test_the_imitation_term_matches_autograd_of_its_loss_and_adam():
     rep = _filled_replay(500, g)
     rows = rep.sample((k, 32), g)
     fast_loss, ref_loss = (qq.QuadraticQLoss(_net(hidden=64), gamma=0.95) for _ in range(2))
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         fast_loss, rep, generator=_gen(22), updates_per_call=k, target_update_period=100 * k
     )
     fast.imitate(_teacher, weight)
@@ -566,7 +567,7 @@ def test_the_imitation_term_matches_autograd_of_its_loss_and_adam():
     obs = rows[..., :OBS_DIM]  # [k, B, d]
     before = ref_loss.value_network.greedy(obs).detach()
     taught = _teacher(obs.reshape(-1, OBS_DIM), before.reshape(-1, 1)).view_as(before)
-    overruled = ((taught - before).abs() > qq.TEACHER_CHANGED).float()
+    overruled = ((taught - before).abs() > qf.TEACHER_CHANGED).float()
     assert 0 < overruled.sum() < overruled.numel()
     opt = torch.optim.Adam(ref_loss.parameters(), lr=1e-3)
     td_losses = []
@@ -597,7 +598,7 @@ def test_the_expectile_loss_matches_autograd_of_its_loss_and_adam(tau):
     rep = _filled_replay(500, g)
     rows = rep.sample((k, 32), g)
     fast_loss, ref_loss = (qq.QuadraticQLoss(_net(hidden=64), gamma=0.95) for _ in range(2))
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         fast_loss, rep, generator=_gen(32), updates_per_call=k, target_update_period=100 * k,
         expectile=tau,
     )  # fmt: skip
@@ -627,7 +628,7 @@ def test_the_expectile_loss_matches_autograd_of_its_loss_and_adam(tau):
 
 def test_an_imitation_weight_must_be_positive():
     g = _gen(23)
-    fast = qq.FastQuadQUpdater(
+    fast = qf.FastQuadQUpdater(
         qq.QuadraticQLoss(_net(hidden=16), gamma=0.95), _filled_replay(100, g), generator=g
     )
     with pytest.raises(ValueError, match="imitation weight must be > 0, got 0.0"):
@@ -680,7 +681,7 @@ def test_learning_rate_decays_linearly_to_its_end_fraction_and_is_constant_by_de
     rep = _filled_replay(200, _gen(13))
 
     def updater(**kw):
-        return qq.FastQuadQUpdater(
+        return qf.FastQuadQUpdater(
             qq.QuadraticQLoss(_net()), rep, generator=_gen(14), updates_per_call=10,
             target_update_period=100, lr=1e-2, **kw,
         )  # fmt: skip
@@ -708,7 +709,7 @@ def test_learning_rate_decays_linearly_to_its_end_fraction_and_is_constant_by_de
 
 def _seed_updater(seed, replay=None, **kw):
     """A fast-path updater of seed `seed`'s network: k = 10, target period 100."""
-    return qq.FastQuadQUpdater(
+    return qf.FastQuadQUpdater(
         qq.QuadraticQLoss(_net(seed)), replay, generator=_gen(seed if replay is None else 14),
         updates_per_call=10, target_update_period=100, **kw,
     )  # fmt: skip
@@ -756,7 +757,7 @@ def test_flushed_updates_flush_only_inside_the_update():
             up._fn = spy
             for _ in range(3):
                 rows = rep.sample((10, 32), _gen(5))
-                up.step(rows if isinstance(up, qq.FastQuadQUpdater) else rows[None])
+                up.step(rows if isinstance(up, qf.FastQuadQUpdater) else rows[None])
                 assert not _flushing_now()
             outs[on] = up.flat.clone()
         assert seen == {False: [False] * 3, True: [True] * 3}

@@ -296,7 +296,7 @@ def test_tensorboard_gets_each_loss_and_each_ego_once(tmp_path, monkeypatch):
 def test_a_slow_first_call_says_it_is_compiling(capsys):
     import time
 
-    from marlmerge.learners.quadq import notice_if_slow
+    from marlmerge.learners.compiling import notice_if_slow
 
     with notice_if_slow("compiling...", after_s=0.05):
         time.sleep(0.3)

@@ -15,7 +15,7 @@ from test_train import TINY
 from marlmerge.cli import main
 from marlmerge.io import files
 from marlmerge.learners.common import sample_uniform
-from marlmerge.learners.quadq import FastSpec, fast_chunk, fast_chunk_peaks
+from marlmerge.learners.quadq_fast import FastSpec, fast_chunk, fast_chunk_peaks
 from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
 from marlmerge.training.loop import make_replay
 from marlmerge.training.seeds import CHECKPOINT_NAME, train_seeds

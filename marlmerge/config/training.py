@@ -260,7 +260,7 @@ class TrainConfig(RunConfig):
     rate. quadq on the fast or compiled path."""
     flush_denormals: bool = False
     """The quadratic Q's updates run with subnormal floats flushed to zero (only the update's
-    call: `marlmerge.learners.quadq.denormals_flushed`). Dead units' Adam moments decay into
+    call: `marlmerge.learners.compiling.denormals_flushed`). Dead units' Adam moments decay into
     the subnormal range, where the CPU's arithmetic is many times slower: on one host the
     update of 8 seeds in one process took 37 s instead of 58 s (200,000 steps), with the same
     bits in every run checked (`docs/scale-out.md`). Off by default, as it changes the

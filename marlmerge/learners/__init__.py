@@ -1,6 +1,7 @@
 """Learners built on torchrl, all behind the one protocol of `base.Learner`:
 
-- `quadq` (the paper's quadratic-in-action Q-function, its loss and fused update path) and
+- `quadq` (the paper's quadratic-in-action Q-function and its loss), `quadq_fast` (its
+  engineered update path), `quadq_fused` (S seeds in one update) and
   `quadq_learner` (the protocol over it);
 - `dqn` and `td3`, its peers over torchrl losses, sharing `common`;
 - `highway`, the learned highway driver (a residual on the scripted profile), and `ppo`, the
@@ -12,14 +13,13 @@ from marlmerge.learners.dqn import DQNLearner, dqn_action_levels
 from marlmerge.learners.loading import ALGORITHMS, load_policy, make_learner
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
-    FastQuadQUpdater,
     GaussianExploration,
     PeriodicHardUpdate,
     QuadraticQLoss,
     QuadraticQNet,
-    TransitionReplay,
     noisy_greedy_action,
 )
+from marlmerge.learners.quadq_fast import FastQuadQUpdater, TransitionReplay
 from marlmerge.learners.td3 import TD3Learner
 
 __all__ = [

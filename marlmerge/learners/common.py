@@ -28,7 +28,8 @@ from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.modules import MLP
 
 from marlmerge.learners.base import Learner
-from marlmerge.learners.quadq import notice_if_slow, unpack_rows
+from marlmerge.learners.compiling import notice_if_slow
+from marlmerge.learners.quadq_fast import unpack_rows
 from marlmerge.sim.observation import EGO_FEATURES
 
 OBS_DIM = len(EGO_FEATURES)

@@ -1,4 +1,8 @@
-"""One helper for `torch.compile`: every compiled update gets a code object of its own.
+"""Helpers for the compiled updates: every one gets a code object of its own (`own_code`),
+a notice while a first call compiles (`notice_if_slow`), and subnormals flushed on request
+(`denormals_flushed`).
+
+**Code objects.**
 
 torch.compile keeps the versions it compiled on the Python code object of the frame it
 compiles, at most `torch._dynamo.config.recompile_limit` (8) of them. Each distinct setting baked
@@ -15,10 +19,15 @@ past the limit torch runs those parts uncompiled, with a warning: `maybe_compile
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import sys
+import threading
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
+
+import torch
 
 
 def own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -35,3 +44,39 @@ def own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
     wrapper.__qualname__ = getattr(inner, "__qualname__", "call")
     wrapper.__doc__ = getattr(inner, "__doc__", None)
     return wrapper
+
+
+COMPILE_NOTICE = (
+    "marlmerge: compiling the update step with torch.compile (first run: up to a minute; "
+    "later runs load it from the cache)..."
+)
+
+
+@contextlib.contextmanager
+def notice_if_slow(message: str = COMPILE_NOTICE, after_s: float = 2.0) -> Iterator[None]:
+    """Print `message` to stderr if the block is still running after `after_s` seconds (a first
+    call that compiles), so a progress bar that stands still is explained."""
+    timer = threading.Timer(after_s, lambda: print(message, file=sys.stderr, flush=True))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+@contextlib.contextmanager
+def denormals_flushed(on: bool) -> Iterator[None]:
+    """With `on`, subnormal floats are flushed to zero inside the block
+    (`torch.set_flush_denormal`, on the calling thread) and kept again after it, so the rest
+    of the process computes as before (a flush set for the whole process beforehand is
+    cleared too: torch cannot tell whether one was). Dead units' Adam moments decay into the
+    subnormal range, where the CPU's arithmetic is many times slower (`docs/scale-out.md`)."""
+    if not on:
+        yield
+        return
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)

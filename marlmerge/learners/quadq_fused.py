@@ -31,16 +31,12 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from marlmerge.learners.compiling import own_code
-from marlmerge.learners.quadq import (
-    HEAD_A,
-    HEAD_B,
-    HEAD_C,
+from marlmerge.learners.compiling import denormals_flushed, notice_if_slow, own_code
+from marlmerge.learners.quadq import HEAD_A, HEAD_B, HEAD_C
+from marlmerge.learners.quadq_fast import (
     FastQuadQUpdater,
     FastSpec,
     adam_step,
-    denormals_flushed,
-    notice_if_slow,
     peaks_targets,
     peaks_update,
     td_weights,
