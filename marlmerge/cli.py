@@ -608,10 +608,8 @@ def _at_least(low: int) -> Callable[[str], int]:
     return parse
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="marlmerge", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
-
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge train`."""
     t = sub.add_parser("train", help="train the ego (default: the paper's recipe)")
     t.add_argument(
         "preset",
@@ -638,6 +636,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_cmd)
 
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge evaluate`."""
     e = sub.add_parser("evaluate", help="evaluate a saved policy greedily")
     e.add_argument(
         "policy",
@@ -668,6 +669,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.set_defaults(func=evaluate_cmd)
 
+
+def _add_cotrain(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge cotrain`."""
     c = sub.add_parser("cotrain", help="co-train learned highway agents and the ego")
     c.add_argument("preset", help="co-training preset in trainers/ (e.g. cotrain) or a .toml path")
     c.add_argument("--out", default=None, help="run folder (default runs/<name>)")
@@ -682,6 +686,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=cotrain_cmd)
 
+
+def _add_grid(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge grid`."""
     g = sub.add_parser("grid", help="robustness grid: policies x traffic conditions")
     g.add_argument(
         "--policy",
@@ -724,6 +731,9 @@ def build_parser() -> argparse.ArgumentParser:
     _backend_args(g)
     g.set_defaults(func=grid_cmd)
 
+
+def _add_stress(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge stress`."""
     st = sub.add_parser("stress", help="search the traffic space for where a policy fails")
     st.add_argument("policy", help="hold, idm, gap, KIND:RUN (one run) or a run folder")
     st.add_argument("--scenario", default="default", help="the traffic the space varies")
@@ -740,6 +750,9 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--no-clip", action="store_true", help="no video of the first failures")
     st.set_defaults(func=stress_cmd)
 
+
+def _add_estimate(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge estimate`."""
     es = sub.add_parser("estimate", help="a policy's collision rate, with rare-event sampling")
     es.add_argument("policy", help="as evaluate takes it: hold, idm, gap, a run, gap@shield, ...")
     es.add_argument("--scenario", default=None, help="the traffic (default: the policy's own)")
@@ -778,6 +791,9 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--out", default="runs/estimate", help="batches and report.json (resumable)")
     es.set_defaults(func=estimate_cmd)
 
+
+def _add_rampflow(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge rampflow`."""
     rf = sub.add_parser("rampflow", help="ramp flow: many merging vehicles, the merge measured")
     rf.add_argument(
         "policy",
@@ -801,10 +817,16 @@ def build_parser() -> argparse.ArgumentParser:
     rf.add_argument("--out", default=None, help="also write report.json here")
     rf.set_defaults(func=rampflow_cmd)
 
+
+def _add_plot(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge plot`."""
     pl = sub.add_parser("plot", help="regenerate the loss and reward figures of a run")
     pl.add_argument("run", help="run folder")
     pl.set_defaults(func=plot_cmd)
 
+
+def _add_simulate(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge simulate`."""
     s = sub.add_parser("simulate", help="drive ramp vehicles through scripted traffic")
     s.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
     s.add_argument("--episodes", type=_at_least(1), default=20)
@@ -819,6 +841,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="runs/simulate", help="output folder")
     s.set_defaults(func=simulate)
 
+
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge sweep`."""
     w = sub.add_parser("sweep", help="train a preset over many seeds, summarise across seeds")
     w.add_argument("preset", help="training preset in trainers/ (or a .toml path)")
     w.add_argument("--seeds", default="0-4", help="e.g. 0-9, 0,2,5 or 0-3,10-12 (default 0-4)")
@@ -836,6 +861,9 @@ def build_parser() -> argparse.ArgumentParser:
     _backend_args(w)
     w.set_defaults(func=sweep_cmd)
 
+
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge render`."""
     r = sub.add_parser("render", help="record greedy episodes as a video (.mp4 or .gif)")
     r.add_argument("policy", help="as evaluate takes it: hold, idm, gap, a run, gap@shield, ...")
     r.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
@@ -850,6 +878,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", default="runs/episode.mp4", help="video file (.mp4 or .gif)")
     r.set_defaults(func=render_cmd)
 
+
+def _add_validate(sub: argparse._SubParsersAction) -> None:
+    """The arguments of `marlmerge validate`."""
     v = sub.add_parser("validate", help="compare the simulator with SUMO, write docs/validation")
     v.add_argument("--scenario", default="default", help="preset name in envs/ or a .toml path")
     v.add_argument("--out", default="docs/validation", help="report folder")
@@ -869,6 +900,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="merge capacity and ramp delay under ramp flow (report: docs/validation/merge)",
     )
     v.set_defaults(func=validate_cmd)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="marlmerge", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    _add_train(sub)
+    _add_evaluate(sub)
+    _add_cotrain(sub)
+    _add_grid(sub)
+    _add_stress(sub)
+    _add_estimate(sub)
+    _add_rampflow(sub)
+    _add_plot(sub)
+    _add_simulate(sub)
+    _add_sweep(sub)
+    _add_render(sub)
+    _add_validate(sub)
     return p
 
 
