@@ -338,22 +338,9 @@ def run_grid(
     flow are measured as a whole merge instead (`marlmerge.evaluation.grid_flow`: `ramp_hours`
     in each of `ramp_worlds` worlds)."""
     check_backend(backend, workers, address)
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
-    if episodes < 1 or worlds < 1:
-        raise ValueError(f"episodes and worlds must be >= 1, got {episodes} and {worlds}")
-    if not 0 < ramp_hours < math.inf or ramp_worlds < 1:
-        raise ValueError(
-            f"ramp_hours must be finite and > 0 and ramp_worlds >= 1, got {ramp_hours} and "
-            f"{ramp_worlds}"
-        )
+    _check_grid_args(estimator, episodes, worlds, ramp_hours, ramp_worlds)
     every = [c if isinstance(c, Condition) else parse_condition(c) for c in conditions]
-    refuse_twice("policy", [p.name for p in policies])
-    refuse_twice("condition", [c.label for c in every])
-    for p in (p for p in policies if p.shield_left):  # refused before any file is written
-        for c in every:
-            for run in p.runs or (None,):
-                check_shield_left(p, scenario_for(p, run, c.scenario()))
+    _check_cells(policies, every)  # refused before any file is written
     out = Path(out_dir)
     (out / "cells").mkdir(parents=True, exist_ok=True)
     flowing = [c for c in every if c.scenario().ramp.flowing]
@@ -381,6 +368,57 @@ def run_grid(
         for run in (p.runs or (None,))
         for hw in (c.highway or (None,))
     ]
+    result = _run_cells(cells, out, episodes, progress, backend, workers, address)
+    rows = result.rows
+    labels = list(dict.fromkeys(c.label for c in conds))
+    summary = summary_markdown(rows, names, labels, result, episodes, seed)
+    if estimator == "is":
+        estimates = _run_estimates(cells, out, backend, workers, address)
+        summary += "\n".join(_estimate_table(estimates, names, labels)) + "\n"
+    flows = run_flow_cells(flow_cells, out, backend, workers, address)
+    if flows:
+        summary += "\n" + "\n".join(flow_table(flows, ramp_hours, ramp_worlds))
+    (out / "summary.md").write_text(summary)
+    plot_heatmaps(rows, names, labels, out)
+    return result
+
+
+def _check_grid_args(
+    estimator: str, episodes: int, worlds: int, ramp_hours: float, ramp_worlds: int
+) -> None:
+    """`run_grid`'s counts and estimator, refused naming the value."""
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
+    if episodes < 1 or worlds < 1:
+        raise ValueError(f"episodes and worlds must be >= 1, got {episodes} and {worlds}")
+    if not 0 < ramp_hours < math.inf or ramp_worlds < 1:
+        raise ValueError(
+            f"ramp_hours must be finite and > 0 and ramp_worlds >= 1, got {ramp_hours} and "
+            f"{ramp_worlds}"
+        )
+
+
+def _check_cells(policies: Sequence[PolicySpec], every: Sequence[Condition]) -> None:
+    """Names given twice, and left-lane shields on conditions without left-lane features."""
+    refuse_twice("policy", [p.name for p in policies])
+    refuse_twice("condition", [c.label for c in every])
+    for p in (p for p in policies if p.shield_left):
+        for c in every:
+            for run in p.runs or (None,):
+                check_shield_left(p, scenario_for(p, run, c.scenario()))
+
+
+def _run_cells(
+    cells: list[Cell],
+    out: Path,
+    episodes: int,
+    progress: bool,
+    backend: str,
+    workers: int | None,
+    address: str | None,
+) -> GridResult:
+    """Run the cells not already in `out/cells` (one CSV each) on `backend`, then join every
+    cell's episodes into `out/episodes.csv`."""
     files = [out / "cells" / f"{cell.key}.csv" for cell in cells]
     todo = [i for i, f in enumerate(files) if not f.exists()]
     bar = None
@@ -408,26 +446,8 @@ def run_grid(
     texts = [f.read_text() for f in files]
     write_text(out / "episodes.csv", texts[0] + "".join(t.split("\n", 1)[1] for t in texts[1:]))
     rows = list(csv.DictReader(io.StringIO((out / "episodes.csv").read_text())))
-    result = GridResult(
-        rows,
-        len(todo) * episodes / max(wall, 1e-9),
-        wall,
-        out,
-        backend,
-        len(todo),
-        len(cells) - len(todo),
-    )
-    labels = list(dict.fromkeys(c.label for c in conds))
-    summary = summary_markdown(rows, names, labels, result, episodes, seed)
-    if estimator == "is":
-        estimates = _run_estimates(cells, out, backend, workers, address)
-        summary += "\n".join(_estimate_table(estimates, names, labels)) + "\n"
-    flows = run_flow_cells(flow_cells, out, backend, workers, address)
-    if flows:
-        summary += "\n" + "\n".join(flow_table(flows, ramp_hours, ramp_worlds))
-    (out / "summary.md").write_text(summary)
-    plot_heatmaps(rows, names, labels, out)
-    return result
+    rate = len(todo) * episodes / max(wall, 1e-9)
+    return GridResult(rows, rate, wall, out, backend, len(todo), len(cells) - len(todo))
 
 
 def _csv_text(rows: list[dict]) -> str:

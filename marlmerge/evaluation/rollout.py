@@ -76,88 +76,101 @@ def rollout_first_egos(
     episode runs (`TrafficCore.set_lapse_branches`; -1: the trunk).
     """
     episodes, worlds = check_count("episodes", episodes), check_count("worlds", worlds)
-    rec: dict[str, list[np.ndarray]] = {
-        "outcome": [],
-        "time_s": [],
-        "reward": [],
-        "mean_abs_accel": [],
-        "background_collisions": [],
-        "filter_interventions": [],
-    }
+    if highway_policy is not None and (scenarios is not None or proposal is not None):
+        raise ValueError("scenarios, proposal: not with a highway policy")
+    rec: dict[str, list[np.ndarray]] = {}
     traces: list[EpisodeTrajectory] = []
-    lo, hi = scenario.ego.accel_bounds_mps2
     for g in range(-(-episodes // worlds)):
-        nw = min(worlds, episodes - g * worlds)
+        batch = slice(g * worlds, min((g + 1) * worlds, episodes))
+        nw = batch.stop - batch.start
         seeds = (
-            [seed + g * worlds + i for i in range(nw)]
+            [seed + e for e in range(batch.start, batch.stop)]
             if road_seeds is None
-            else list(road_seeds[g * worlds : g * worlds + nw])
+            else list(road_seeds[batch])
         )
         if highway_policy is None:
-            own = None if scenarios is None else scenarios[g * worlds : g * worlds + nw]
             env = BatchedMergeEnv(
-                scenario, num_worlds=nw, seed=seeds, scenarios=own, proposal=proposal
+                scenario,
+                num_worlds=nw,
+                seed=seeds,
+                scenarios=None if scenarios is None else scenarios[batch],
+                proposal=proposal,
             )
             if lapse_branches is not None:
-                env.core.set_lapse_branches(
-                    np.asarray(lapse_branches[g * worlds : g * worlds + nw], dtype=np.int64)
-                )
-        elif scenarios is not None or proposal is not None:
-            raise ValueError("scenarios, proposal: not with a highway policy")
+                env.core.set_lapse_branches(np.asarray(lapse_branches[batch], dtype=np.int64))
         else:
             env = MultiAgentMergeEnv(scenario, num_worlds=nw, seed=seeds)
             env.set_opponent_mix(1, 0.0)
-        td = env.reset()
-        background0 = env.core.state.background_collisions.copy()
-        background = np.zeros(nw, dtype=np.int64)
-        recorded: list[tuple[int, EpisodeTrajectory]] = []  # (world, episode)
-        if record:
-            recorder = TrajectoryRecorder(scenario, nw)
-            env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
-        tally = None if highway_policy is None else HighwayTally(scenario, nw)
-        weights = None if proposal is None else WeightTally(env.core, nw)
-        shields = shield_count(policy, nw)
-        outcome = np.zeros(nw, dtype=np.int64)
-        interventions = np.zeros(nw, dtype=np.int64)
-        time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
-        while (outcome == 0).any():
-            action = policy(td.get("observation")).reshape(nw, -1)  # [B, A]
-            if shields is not None:
-                shields.add(outcome == 0)
-            td.set("action", action)
-            if highway_policy is not None:
-                td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
-            nxt = env.step(td).get("next")
-            running = outcome == 0
-            if tally is not None:
-                tally.add(td, nxt, running)
-            if weights is not None:
-                weights.add(running, nxt.get("outcome").reshape(nw).numpy() != 0)
-            background = np.where(
-                running, env.core.state.background_collisions - background0, background
-            )
-            abs_accel += np.abs(action[:, 0].double().clamp(lo, hi).numpy()) * running
-            steps += running
-            reward += nxt.get("reward").reshape(nw).numpy() * running
-            new = nxt.get("outcome").reshape(nw).numpy()
-            ended = running & (new != 0)
-            outcome[ended] = new[ended]
-            time_s[ended] = nxt.get("ego_time_s").reshape(nw).numpy()[ended]
-            interventions[ended] = env.core.state.filter_interventions[ended]
-            td = nxt
-        rec["outcome"].append(outcome)
-        rec["time_s"].append(time_s)
-        rec["reward"].append(reward)
-        rec["mean_abs_accel"].append(abs_accel / np.maximum(steps, 1))
-        rec["background_collisions"].append(background)
-        rec["filter_interventions"].append(interventions)
-        extra = {} if tally is None else tally.records()
-        extra |= {} if weights is None else weights.records()
-        extra |= {} if shields is None else shields.records()
-        for key, values in extra.items():
+        records, batch_traces = _run_batch(
+            env, policy, scenario, nw, record, highway_policy, proposal is not None
+        )
+        for key, values in records.items():
             rec.setdefault(key, []).append(values)
-        traces += [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
+        traces += batch_traces
     return {k: np.concatenate(v) for k, v in rec.items()}, traces
+
+
+def _run_batch(
+    env: BatchedMergeEnv | MultiAgentMergeEnv,
+    policy: EgoPolicy,
+    scenario: ScenarioConfig,
+    nw: int,
+    record: bool,
+    highway_policy: HighwayPolicy | None,
+    weighted: bool,
+) -> tuple[dict[str, np.ndarray], list[EpisodeTrajectory]]:
+    """Run the first ego of each of `env`'s `nw` worlds to its end: the per-episode records of
+    `rollout_first_egos` and, with `record`, the episodes' trajectories (in world order)."""
+    lo, hi = scenario.ego.accel_bounds_mps2
+    td = env.reset()
+    background0 = env.core.state.background_collisions.copy()
+    background = np.zeros(nw, dtype=np.int64)
+    recorded: list[tuple[int, EpisodeTrajectory]] = []  # (world, episode)
+    if record:
+        recorder = TrajectoryRecorder(scenario, nw)
+        env.recorder = lambda out, rec=recorder, got=recorded: got.extend(rec.record(out))
+    tally = None if highway_policy is None else HighwayTally(scenario, nw)
+    weights = WeightTally(env.core, nw) if weighted else None
+    shields = shield_count(policy, nw)
+    outcome = np.zeros(nw, dtype=np.int64)
+    interventions = np.zeros(nw, dtype=np.int64)
+    time_s, reward, abs_accel, steps = (np.zeros(nw) for _ in range(4))
+    while (outcome == 0).any():
+        action = policy(td.get("observation")).reshape(nw, -1)  # [B, A]
+        if shields is not None:
+            shields.add(outcome == 0)
+        td.set("action", action)
+        if highway_policy is not None:
+            td.set((GROUP, "action"), highway_policy(td.get((GROUP, "observation"))))
+        nxt = env.step(td).get("next")
+        running = outcome == 0
+        if tally is not None:
+            tally.add(td, nxt, running)
+        if weights is not None:
+            weights.add(running, nxt.get("outcome").reshape(nw).numpy() != 0)
+        background = np.where(
+            running, env.core.state.background_collisions - background0, background
+        )
+        abs_accel += np.abs(action[:, 0].double().clamp(lo, hi).numpy()) * running
+        steps += running
+        reward += nxt.get("reward").reshape(nw).numpy() * running
+        new = nxt.get("outcome").reshape(nw).numpy()
+        ended = running & (new != 0)
+        outcome[ended] = new[ended]
+        time_s[ended] = nxt.get("ego_time_s").reshape(nw).numpy()[ended]
+        interventions[ended] = env.core.state.filter_interventions[ended]
+        td = nxt
+    records = {
+        "outcome": outcome,
+        "time_s": time_s,
+        "reward": reward,
+        "mean_abs_accel": abs_accel / np.maximum(steps, 1),
+        "background_collisions": background,
+        "filter_interventions": interventions,
+    }
+    for extra in (tally, weights, shields):
+        records |= {} if extra is None else extra.records()
+    return records, [traj for _, traj in sorted(recorded, key=lambda e: e[0])]
 
 
 class ShieldCount:
