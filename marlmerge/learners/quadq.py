@@ -295,7 +295,7 @@ class QuadraticQLoss(LossModule):
     as the network passed in, so ``net.greedy(obs)`` always acts with the current weights), the
     target parameters in ``target_value_network_params`` (detached clones, never trained). Pair
     the loss with :class:`PeriodicHardUpdate` (or torchrl ``HardUpdate``) and call its
-    ``step()`` after every optimiser step, or use :class:`FastQuadQUpdater`, which does both.
+    ``step()`` after every optimiser step, or use `quadq_fast.FastQuadQUpdater`, which does both.
 
     Args:
         value_network: a module whose ``forward(obs)`` returns ``(A, B, C)`` each [..., 1],
