@@ -727,7 +727,7 @@ def ramp_joins(S: tuple, b: int, p: np.ndarray) -> None:
                 wi[b, WI_RAMP_PASSED] += 1
 
 
-@kernel
+@kernel(inline=True)
 def joins_now(S: tuple, b: int, p: np.ndarray, s: int, chooses: bool, wants: bool) -> bool:
     """Ramp vehicle `s` changes into the right lane at the end of this step: choosing its join
     (`ego.join = "chosen"`), when its command says so (`wants`) inside the merge zone; else by
