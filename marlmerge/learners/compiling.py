@@ -1,6 +1,6 @@
 """Helpers for the compiled updates: every one gets a code object of its own (`own_code`),
-a notice while a first call compiles (`notice_if_slow`), and subnormals flushed on request
-(`denormals_flushed`).
+a notice while a first call compiles (`notice_if_slow`), subnormals flushed on request
+(`denormals_flushed`), and one call of an update with both (`call_update`).
 
 **Code objects.**
 
@@ -23,6 +23,7 @@ import contextlib
 import functools
 import sys
 import threading
+import time
 import types
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -80,3 +81,18 @@ def denormals_flushed(on: bool) -> Iterator[None]:
         yield
     finally:
         torch.set_flush_denormal(False)
+
+
+def call_update(
+    fn: Callable[..., Any], args: tuple[Any, ...], *, compiling: bool, flush: bool
+) -> tuple[Any, float | None]:
+    """`fn(*args)`, with subnormals flushed if `flush` (`denormals_flushed`). With `compiling`
+    (a compiled update's first call) the call runs under the compile notice and its wall time
+    (s) is returned as well; otherwise None."""
+    with denormals_flushed(flush):
+        if not compiling:
+            return fn(*args), None
+        t0 = time.perf_counter()
+        with notice_if_slow():
+            out = fn(*args)
+        return out, time.perf_counter() - t0

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import functools
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -24,7 +23,7 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from torch import Tensor
 
 from marlmerge.config.training import PEAK_SHARE_HEADS
-from marlmerge.learners.compiling import denormals_flushed, notice_if_slow, own_code
+from marlmerge.learners.compiling import call_update, own_code
 from marlmerge.learners.quadq import (
     QuadraticQLoss,
     QuadraticQNet,
@@ -682,14 +681,12 @@ class FastQuadQUpdater:
             raise ValueError(f"rows must hold k={self.k} minibatches, got {rows.shape[0]}")
         args = (self.flat, self.target_flat, self.exp_avg, self.exp_avg_sq, self.adam_scalars())
         extra = () if self.teacher is None else (self.guide(rows),)
-        with denormals_flushed(self.flush_denormals):
-            if self.compile_time_s is None and self._fn is not self._eager_chunk:
-                t0 = time.perf_counter()
-                with notice_if_slow():
-                    losses = self._fn(*args, rows, *extra)
-                self.compile_time_s = time.perf_counter() - t0
-            else:
-                losses = self._fn(*args, rows, *extra)
+        first = self.compile_time_s is None and self._fn is not self._eager_chunk
+        losses, took = call_update(
+            self._fn, (*args, rows, *extra), compiling=first, flush=self.flush_denormals
+        )
+        if took is not None:
+            self.compile_time_s = took
         self.advance()
         return losses
 

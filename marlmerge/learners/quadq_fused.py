@@ -25,13 +25,12 @@ Measured with `benchmarks/bench_seed_fusion.py` (compiled, one thread): 8 seeds 
 from __future__ import annotations
 
 import functools
-import time
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from marlmerge.learners.compiling import denormals_flushed, notice_if_slow, own_code
+from marlmerge.learners.compiling import call_update, own_code
 from marlmerge.learners.quadq import HEAD_A, HEAD_B, HEAD_C
 from marlmerge.learners.quadq_fast import (
     FastQuadQUpdater,
@@ -202,14 +201,12 @@ class FusedQuadQUpdates:
         args: tuple[Tensor, ...] = (*state, us[0].adam_scalars(), rows)
         if us[0].teacher is not None:  # each seed's teacher labels its own minibatches
             args = (*args, torch.stack([u.guide(rows[j]) for j, u in enumerate(us)]))  # type: ignore[misc]
-        with denormals_flushed(us[0].flush_denormals):
-            if self.compiled and self.compile_time_s is None:
-                t0 = time.perf_counter()
-                with notice_if_slow():
-                    losses, _ = self._fn(*args)
-                self.compile_time_s = time.perf_counter() - t0
-            else:
-                losses, _ = self._fn(*args)
+        first = self.compiled and self.compile_time_s is None
+        (losses, _), took = call_update(
+            self._fn, args, compiling=first, flush=us[0].flush_denormals
+        )
+        if took is not None:
+            self.compile_time_s = took
         for u in us:
             u.advance()
         return losses
