@@ -7,6 +7,7 @@ import pytest
 
 from marlmerge.config import ScenarioConfig, load_scenario
 from marlmerge.sim import TrafficCore
+from marlmerge.sim import layout as L
 from marlmerge.sim.drivers import desired_gap_m, entry_speed, idm
 from marlmerge.sim.layout import LEFT, RAMP, RIGHT
 from marlmerge.validation.scenarios import drawn_arrivals
@@ -145,3 +146,42 @@ def test_sumo_gets_departlane_best_for_the_best_entrance():
         cfg = ScenarioConfig().replace(**{"traffic.entrance_lane": rule})
         _, vehicles = _mainline_vehicles(cfg, 0, 120.0, "main")
         assert any(wanted in line for _, line in vehicles)
+
+
+def _due_from_head(core: TrafficCore, b: int, stream: int) -> int:
+    """The entrance queue counted afresh: the due drawn arrivals from the queue's head."""
+    head = int(core.wi[b, L.WI_HEAD_RIGHT + stream])
+    count = int(core.wi[b, L.WI_COUNT_RIGHT + stream])
+    times = core.sched[b, stream, (head + np.arange(count)) % core.sched.shape[2], L.SC_T]
+    not_due = np.flatnonzero(times > core.wf[b, L.WF_T])
+    return int(not_due[0]) if not_due.size else count
+
+
+@pytest.mark.parametrize("ramp_flow", [False, True], ids=["lanes", "ramp"])
+def test_the_queue_count_goes_on_from_the_last_step(ramp_flow):
+    # above the entrance's capacity the queues grow without bound, so each step's count goes on
+    # from the last one's (`entrance._waiting`); it must equal a fresh count at every step,
+    # after a world's reset, and after counts set wrong by hand (too high, too low)
+    over = {"traffic.flow_vph_per_lane": 2400.0}
+    if ramp_flow:
+        over |= {"ramp.flow_vph": 2400.0}
+    cfg = ScenarioConfig().replace(**over)
+    core = TrafficCore(cfg, batch_size=3, seed=4)
+    rows = [(L.WI_QUEUE_RIGHT, RIGHT), (L.WI_QUEUE_LEFT, LEFT)]
+    if ramp_flow:
+        rows.append((L.WI_RAMP_QUEUE, L.EGO_STREAM))
+    longest = 0
+    for i in range(1500):
+        if not ramp_flow:
+            core.remove_ego()
+        core.step(np.full(3, np.nan))
+        for b in range(3):
+            for row, stream in rows:
+                assert core.wi[b, row] == _due_from_head(core, b, stream), (i, b, row)
+                longest = max(longest, int(core.wi[b, row]))
+        if i == 600:
+            core.reset(mask=np.array([True, False, False]))
+        if i == 900:
+            core.wi[1, L.WI_QUEUE_RIGHT] += 5  # entries counted due that are not
+            core.wi[2, L.WI_QUEUE_RIGHT] = 0  # a count that starts over
+    assert longest > 40  # the queues that made the walk costly

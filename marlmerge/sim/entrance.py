@@ -55,6 +55,7 @@ from marlmerge.sim.layout import (
     WF_DELAY_SUM,
     WF_RAMP_WAIT_SUM,
     WF_T,
+    WI_COUNT_LEFT,
     WI_COUNT_RIGHT,
     WI_ENTERED,
     WI_HEAD_RIGHT,
@@ -216,12 +217,22 @@ def _best_lane_arrivals(S: tuple, b: int, p: np.ndarray) -> None:
 
 
 @kernel(inline=True)
-def _waiting(S: tuple, b: int, stream: int) -> int:
-    """How many of entrance queue `stream`'s drawn arrivals are due and still waiting."""
+def _waiting(S: tuple, b: int, stream: int, known: int) -> int:
+    """How many of entrance queue `stream`'s drawn arrivals are due and still waiting.
+
+    A queue's arrivals are drawn in the order of their times, so this is the first not yet
+    due. The count goes on from `known` (the last step's count less the arrivals that entered
+    since, all still due) instead of walking the whole queue, which grows without bound where
+    the demand is above the entrance's capacity; where the arrival before `known` is not due
+    (after a reset, or a count set by hand) it starts again from the head."""
     vf, vi, wf, wi, lanes, sched = S
     t, q_len = wf[b, WF_T], sched.shape[2]
     head, count = wi[b, WI_HEAD_RIGHT + stream], wi[b, WI_COUNT_RIGHT + stream]
-    queue = 0
+    queue = known
+    if queue < 0 or queue > count or (
+        queue > 0 and sched[b, stream, (head + queue - 1) % q_len, SC_T] > t
+    ):
+        queue = 0
     while queue < count and sched[b, stream, (head + queue) % q_len, SC_T] <= t:
         queue += 1
     return queue
@@ -234,6 +245,7 @@ def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
     `_best_lane_arrivals`); otherwise they wait; nobody is dropped. Queue lengths (per drawn
     lane) are counted every step."""
     vf, vi, wf, wi, lanes, sched = S
+    count_right, count_left = wi[b, WI_COUNT_RIGHT], wi[b, WI_COUNT_LEFT]
     if p[P_ENTRANCE_BEST] > 0.0:
         _best_lane_arrivals(S, b, p)
     else:
@@ -241,7 +253,8 @@ def arrivals(S: tuple, b: int, p: np.ndarray) -> None:
             if _due(S, b, lane):
                 _enter(S, b, p, lane, lane)
     for lane in range(2):
-        queue = _waiting(S, b, lane)
+        entered = (count_left if lane else count_right) - wi[b, WI_COUNT_RIGHT + lane]
+        queue = _waiting(S, b, lane, wi[b, WI_QUEUE_RIGHT + lane] - entered)
         wi[b, WI_QUEUE_RIGHT + lane] = queue
         wi[b, WI_QUEUE_MAX] = max(wi[b, WI_QUEUE_MAX], queue)
     if p[P_RAMP_FLOW] > 0.0:
@@ -288,7 +301,8 @@ def ramp_arrivals(S: tuple, b: int, p: np.ndarray) -> None:
             wi[b, WI_RAMP_ENTERED] += 1
             head = (head + 1) % q_len
             count -= 1
-            wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st] = head, count
-    queue = _waiting(S, b, st)
+    entered = wi[b, WI_COUNT_RIGHT + st] - count  # 1 if one entered
+    wi[b, WI_HEAD_RIGHT + st], wi[b, WI_COUNT_RIGHT + st] = head, count
+    queue = _waiting(S, b, st, wi[b, WI_RAMP_QUEUE] - entered)
     wi[b, WI_RAMP_QUEUE] = queue
     wi[b, WI_RAMP_QUEUE_MAX] = max(wi[b, WI_RAMP_QUEUE_MAX], queue)
