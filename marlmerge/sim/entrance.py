@@ -229,8 +229,10 @@ def _waiting(S: tuple, b: int, stream: int, known: int) -> int:
     t, q_len = wf[b, WF_T], sched.shape[2]
     head, count = wi[b, WI_HEAD_RIGHT + stream], wi[b, WI_COUNT_RIGHT + stream]
     queue = known
-    if queue < 0 or queue > count or (
-        queue > 0 and sched[b, stream, (head + queue - 1) % q_len, SC_T] > t
+    if (
+        queue < 0
+        or queue > count
+        or (queue > 0 and sched[b, stream, (head + queue - 1) % q_len, SC_T] > t)
     ):
         queue = 0
     while queue < count and sched[b, stream, (head + queue) % q_len, SC_T] <= t:
