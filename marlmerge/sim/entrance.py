@@ -228,15 +228,18 @@ def _waiting(S: tuple, b: int, stream: int, known: int) -> int:
     vf, vi, wf, wi, lanes, sched = S
     t, q_len = wf[b, WF_T], sched.shape[2]
     head, count = wi[b, WI_HEAD_RIGHT + stream], wi[b, WI_COUNT_RIGHT + stream]
-    queue = known
-    if (
-        queue < 0
-        or queue > count
-        or (queue > 0 and sched[b, stream, (head + queue - 1) % q_len, SC_T] > t)
-    ):
-        queue = 0
-    while queue < count and sched[b, stream, (head + queue) % q_len, SC_T] <= t:
+    if count == 0 or sched[b, stream, head, SC_T] > t:
+        return 0  # the head is not due: nobody waits (most steps below capacity)
+    queue = known if 1 <= known <= count else 1
+    i = head + queue - 1  # the last arrival counted (a ring: wrapped at most once)
+    if i >= q_len:
+        i -= q_len
+    if sched[b, stream, i, SC_T] > t:
+        queue, i = 1, head
+    i = i + 1 if i + 1 < q_len else 0
+    while queue < count and sched[b, stream, i, SC_T] <= t:
         queue += 1
+        i = i + 1 if i + 1 < q_len else 0
     return queue
 
 
