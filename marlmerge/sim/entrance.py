@@ -223,8 +223,8 @@ def _waiting(S: tuple, b: int, stream: int, known: int) -> int:
     A queue's arrivals are drawn in the order of their times, so this is the first not yet
     due. The count goes on from `known` (the last step's count less the arrivals that entered
     since, all still due) instead of walking the whole queue, which grows without bound where
-    the demand is above the entrance's capacity; where the arrival before `known` is not due
-    (after a reset, or a count set by hand) it starts again from the head."""
+    the demand is above the entrance's capacity. After a reset `known` is 0; where the arrival
+    before `known` is not due (a count set by hand) the count starts again from the head."""
     vf, vi, wf, wi, lanes, sched = S
     t, q_len = wf[b, WF_T], sched.shape[2]
     head, count = wi[b, WI_HEAD_RIGHT + stream], wi[b, WI_COUNT_RIGHT + stream]
