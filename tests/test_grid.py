@@ -82,6 +82,23 @@ def test_every_policy_meets_the_same_episodes():
     assert (brake[:, 2] < hold[:, 2]).all()
 
 
+def test_rollouts_refuse_what_they_would_ignore():
+    import torch
+
+    from marlmerge.config.presets import resolve_config
+    from marlmerge.evaluation.rollout import rollout_first_egos
+
+    scen = resolve_config(CONDITIONS[0])
+    hold = lambda obs: torch.zeros(obs.shape[0], 1)  # noqa: E731
+    highway = lambda obs: torch.zeros(*obs.shape[:2], 1)  # noqa: E731
+    # a highway policy drives traffic that no proposal or branch could weigh: refused by name
+    with pytest.raises(ValueError, match="lapse_branches: not with a highway policy"):
+        rollout_first_egos(hold, scen, 2, seed=0, worlds=2, highway_policy=highway,
+                           lapse_branches=[-1, -1])  # fmt: skip
+    with pytest.raises(ValueError, match=r"lapse_branches: one per episode \(3\), got 2"):
+        rollout_first_egos(hold, scen, 3, seed=0, worlds=3, lapse_branches=[-1, -1])
+
+
 def test_policy_specs_are_checked():
     assert parse_policy("gap").kind == "gap"
     with pytest.raises(ValueError, match="'tailgate'"):

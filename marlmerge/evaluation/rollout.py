@@ -76,8 +76,12 @@ def rollout_first_egos(
     episode runs (`TrafficCore.set_lapse_branches`; -1: the trunk).
     """
     episodes, worlds = check_count("episodes", episodes), check_count("worlds", worlds)
-    if highway_policy is not None and (scenarios is not None or proposal is not None):
-        raise ValueError("scenarios, proposal: not with a highway policy")
+    given = {"scenarios": scenarios, "proposal": proposal, "lapse_branches": lapse_branches}
+    if highway_policy is not None and any(v is not None for v in given.values()):
+        named = ", ".join(k for k, v in given.items() if v is not None)
+        raise ValueError(f"{named}: not with a highway policy")
+    if lapse_branches is not None and len(lapse_branches) != episodes:
+        raise ValueError(f"lapse_branches: one per episode ({episodes}), got {len(lapse_branches)}")
     rec: dict[str, list[np.ndarray]] = {}
     traces: list[EpisodeTrajectory] = []
     for g in range(-(-episodes // worlds)):
