@@ -509,7 +509,13 @@ def sweep_cmd(args: argparse.Namespace) -> int:
         vectorized=args.vectorized,
     )
     print((out / "summary.md").read_text())
-    where = "in one process" if args.vectorized else f"on the {args.backend} backend"
+    where = f"on the {args.backend} backend"
+    if args.vectorized:
+        from marlmerge.training.sweep import seed_groups
+
+        groups = seed_groups(seeds, args.backend, args.workers)
+        where = "in one process" if len(groups) == 1 else f"in {len(groups)} processes"
+        where += f" ({'; '.join(', '.join(map(str, g)) for g in groups)})"
     print(f"{len(seeds)} seeds {where}; runs in {out}/seed_*")
     return 0 if summary else 1
 

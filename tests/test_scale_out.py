@@ -170,6 +170,20 @@ def test_parse_seeds_and_bad_sweeps():
         sweep("quick", [0], "x", {"no_such_key": 1})
 
 
+def test_a_summary_interval_stays_within_what_its_measure_can_be():
+    from marlmerge.training.sweep import summarize
+
+    ev = {0: {"success_rate": 0.0, "mean_merge_time_s": 1.0},
+          1: {"success_rate": 0.9, "mean_merge_time_s": 30.0}}  # fmt: skip
+    s = summarize(ev)
+    # the t interval of two seeds reaches far past 0 and 1: cut to the rates' range
+    assert s["success_rate"]["ci95"] == [0.0, 1.0]
+    lo, hi = s["mean_merge_time_s"]["ci95"]
+    assert lo == 0.0 and 30.0 < hi < float("inf")
+    one = summarize({0: {"success_rate": 0.5}})  # one seed: no interval
+    assert all(x != x for x in one["success_rate"]["ci95"])
+
+
 @pytest.mark.slow
 def test_sweep_summarises_seeds_and_resumes(tmp_path):
     s = sweep("quick", [0, 1], tmp_path, dict(TINY), backend="serial", progress=False)

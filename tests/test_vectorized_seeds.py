@@ -257,7 +257,7 @@ def test_seeds_refuse_a_seed_set_and_levels_without_sample_before_any_work(tmp_p
 
 
 @pytest.mark.slow
-def test_a_vectorised_sweep_splits_the_seeds_over_workers_and_matches_single_runs(tmp_path):
+def test_a_vectorised_sweep_splits_the_seeds_over_workers_and_matches_single_runs(tmp_path, capsys):
     sets = {k: v for k, v in SMALL.items() if k != "name"}
     summary = sweep(
         "paper", [0, 1, 2], tmp_path / "s", sets, "process", workers=2, vectorized=True,
@@ -276,6 +276,13 @@ def test_a_vectorised_sweep_splits_the_seeds_over_workers_and_matches_single_run
     again = sweep("paper", [0, 1, 2], tmp_path / "s", sets, "process", workers=2, vectorized=True)
     # finished groups are reused as they are
     assert json.dumps(again["per_seed"]) == json.dumps(summary["per_seed"])
+    # the command says where the seeds ran
+    from marlmerge.cli import main
+
+    args = [f"--set={k}={v}" for k, v in sets.items()]
+    main(["sweep", "paper", "--seeds", "0-2", "--vectorized", "--workers", "2", "--no-progress",
+          "--out", str(tmp_path / "s"), *args])  # fmt: skip
+    assert "3 seeds in 2 processes (0, 1; 2)" in capsys.readouterr().out
 
 
 @pytest.mark.slow

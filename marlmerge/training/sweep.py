@@ -33,6 +33,15 @@ MEASURES = (
     ("mean_abs_accel_mps2", False),
 )
 """Evaluation measures summarised, and whether higher is better (for the worst seed)."""
+RANGES = {
+    "success_rate": (0.0, 1.0),
+    "collision_rate": (0.0, 1.0),
+    "truncation_rate": (0.0, 1.0),
+    "mean_merge_time_s": (0.0, math.inf),
+    "mean_abs_accel_mps2": (0.0, math.inf),
+}
+"""The values each measure can take: its interval is cut to them (a t interval of few seeds
+reaches past them, e.g. below a rate of 0)."""
 # two-sided 95 % Student t quantiles for 1..30 degrees of freedom (normal beyond)
 _T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179,
         2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064,
@@ -134,6 +143,8 @@ def summarize(evaluations: dict[int, dict[str, Any]]) -> dict[str, Any]:
             np.where(ok, v, -np.inf)
         ))  # fmt: skip
         lo, hi = interval95(v[ok])
+        low, high = RANGES[name]
+        lo, hi = (lo, hi) if math.isnan(lo) else (max(lo, low), min(hi, high))
         out[name] = {
             "mean": float(v[ok].mean()),
             "std": float(v[ok].std(ddof=1)) if ok.sum() > 1 else 0.0,
