@@ -266,6 +266,21 @@ def test_a_bad_set_value_is_reported_against_the_set_not_the_preset():
         load_train_config("quick", lr=-1.0)
 
 
+def test_an_unknown_preset_names_the_closest_ones_not_hundreds():
+    from marlmerge.config.presets import MAX_LISTED, find_preset, preset_dir
+
+    assert len(list(preset_dir("envs").glob("*.toml"))) > MAX_LISTED
+    with pytest.raises(ValueError) as err:
+        find_preset("lapse")
+    msg = str(err.value)
+    assert msg.startswith("unknown scenario preset 'lapse' (the closest: lapses, ")
+    assert "presets in" in msg and "heldout3_01" not in msg  # not the whole folder
+    with pytest.raises(ValueError, match=r"unknown scenario preset 'zzz' \(\d+ presets in "):
+        find_preset("zzz")
+    with pytest.raises(ValueError, match=r"unknown training preset 'nope' \(known: .*paper"):
+        find_preset("nope", "trainers")  # few enough to list
+
+
 @pytest.mark.slow
 def test_an_unknown_scenario_is_refused_before_the_banner_and_before_any_file(tmp_path):
     out = _cli("train", "quick", "--set", 'scenario="nope"', "--out", "run", cwd=tmp_path)

@@ -9,6 +9,7 @@ train` and `marlmerge grid` work from any directory after a plain `pip install .
 
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -22,6 +23,7 @@ KINDS = ("envs", "trainers")
 PRESET_KINDS = ("train", "cotrain")
 """What a training preset's `kind` key may say: the schema (and command) it belongs to."""
 _WHAT = {"envs": "scenario preset", "trainers": "training preset"}
+MAX_LISTED = 30  # an unknown preset's error lists them all up to this many
 
 C = TypeVar("C")
 
@@ -50,7 +52,17 @@ def find_preset(name: str | Path, kind: str = "envs") -> Path:
     if candidate.exists():
         return candidate
     known = sorted(p.stem for p in folder.glob("*.toml")) if folder.exists() else []
-    raise ValueError(f"unknown {_WHAT[kind]} {str(name)!r} (known: {', '.join(known) or 'none'})")
+    raise ValueError(f"unknown {_WHAT[kind]} {str(name)!r} ({_known(known, path.stem, folder)})")
+
+
+def _known(known: list[str], stem: str, folder: Path) -> str:
+    """The presets an unknown name could have meant: all of them when few, else the closest
+    few and where the rest are."""
+    if len(known) <= MAX_LISTED:
+        return f"known: {', '.join(known) or 'none'}"
+    close = difflib.get_close_matches(stem, known, n=5, cutoff=0.5)
+    near = f"the closest: {', '.join(close)}; " if close else ""
+    return f"{near}{len(known)} presets in {folder}"
 
 
 def resolve_config(config: ScenarioConfig | str | Path | None, **overrides: Any) -> ScenarioConfig:
