@@ -85,6 +85,13 @@ def test_bad_actions_raise_naming_agent_and_value(action, match):
         env.step({EGO_AGENT: action})
 
 
+@pytest.mark.parametrize("make", ["parallel_env", "ramp_flow_parallel_env"])
+def test_a_step_before_reset_says_so(make):
+    env = getattr(marlmerge, make)(*(("ramp_flow",) if make.startswith("ramp") else ()))
+    with pytest.raises(RuntimeError, match=r"step\(\) called before reset\(\): call reset"):
+        env.step({})
+
+
 def test_unknown_and_missing_agents_raise():
     env = marlmerge.parallel_env()
     env.reset(seed=0)

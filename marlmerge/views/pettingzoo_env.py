@@ -209,7 +209,8 @@ class RampMergeParallelEnv(ParallelEnv):
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:
-            raise RuntimeError("step() called on a finished episode: call reset() first")
+            when = "before reset()" if self.core is None else "on a finished episode"
+            raise RuntimeError(f"step() called {when}: call reset() first")
         core = self.core
         assert core is not None
         acts = self._parse_actions(actions)

@@ -138,7 +138,8 @@ class RampFlowParallelEnv(ParallelEnv):
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:
-            raise RuntimeError("step() called on a finished episode: call reset() first")
+            when = "before reset()" if self.core is None else "on a finished episode"
+            raise RuntimeError(f"step() called {when}: call reset() first")
         core, table = self.core, self._table
         assert core is not None and table is not None
         acts = self._parse_actions(actions)
