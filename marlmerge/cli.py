@@ -637,7 +637,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "--seeds",
         default=None,
         help="train these seeds in one process (e.g. 0-7 or 0,2,5) into OUT/seed_S, each "
-        "bit for bit its own single run",
+        "bit for bit its own single run (on several cores, `sweep PRESET --seeds S "
+        "--vectorized --workers N` splits them over N such processes, faster)",
     )
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_cmd)
