@@ -26,22 +26,15 @@ from marlmerge.evaluation.backends import check_backend, run_tasks
 from marlmerge.io.files import write_text
 
 MEASURES = (
-    ("success_rate", True),
-    ("collision_rate", False),
-    ("truncation_rate", False),
-    ("mean_merge_time_s", False),
-    ("mean_abs_accel_mps2", False),
+    ("success_rate", True, (0.0, 1.0)),
+    ("collision_rate", False, (0.0, 1.0)),
+    ("truncation_rate", False, (0.0, 1.0)),
+    ("mean_merge_time_s", False, (0.0, math.inf)),
+    ("mean_abs_accel_mps2", False, (0.0, math.inf)),
 )
-"""Evaluation measures summarised, and whether higher is better (for the worst seed)."""
-RANGES = {
-    "success_rate": (0.0, 1.0),
-    "collision_rate": (0.0, 1.0),
-    "truncation_rate": (0.0, 1.0),
-    "mean_merge_time_s": (0.0, math.inf),
-    "mean_abs_accel_mps2": (0.0, math.inf),
-}
-"""The values each measure can take: its interval is cut to them (a t interval of few seeds
-reaches past them, e.g. below a rate of 0)."""
+"""Evaluation measures summarised: name, whether higher is better (for the worst seed) and the
+values it can take (its interval is cut to them: a t interval of few seeds reaches past them,
+e.g. below a rate of 0)."""
 # two-sided 95 % Student t quantiles for 1..30 degrees of freedom (normal beyond)
 _T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179,
         2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064,
@@ -134,7 +127,7 @@ def summarize(evaluations: dict[int, dict[str, Any]]) -> dict[str, Any]:
     """Per measure: mean, std, 95 % interval and the worst seed over the seeds."""
     seeds = sorted(evaluations)
     out: dict[str, Any] = {"seeds": seeds, "per_seed": {str(s): evaluations[s] for s in seeds}}
-    for name, higher_better in MEASURES:
+    for name, higher_better, (low, high) in MEASURES:
         v = np.array([float(evaluations[s].get(name, math.nan)) for s in seeds])
         ok = np.isfinite(v)
         if not ok.any():
@@ -143,7 +136,6 @@ def summarize(evaluations: dict[int, dict[str, Any]]) -> dict[str, Any]:
             np.where(ok, v, -np.inf)
         ))  # fmt: skip
         lo, hi = interval95(v[ok])
-        low, high = RANGES[name]
         lo, hi = (lo, hi) if math.isnan(lo) else (max(lo, low), min(hi, high))
         out[name] = {
             "mean": float(v[ok].mean()),
@@ -166,7 +158,7 @@ def summary_markdown(summary: dict[str, Any], preset: str, backend: str, wall_s:
         "| measure | mean | std | 95 % interval of the mean | worst seed |",
         "|---|---|---|---|---|",
     ]
-    for name, _ in MEASURES:
+    for name, _, _ in MEASURES:
         if name in summary:
             m = summary[name]
             lo, hi = m["ci95"]
@@ -174,11 +166,11 @@ def summary_markdown(summary: dict[str, Any], preset: str, backend: str, wall_s:
                 f"| {name} | {m['mean']:.4g} | {m['std']:.3g} | {lo:.4g} – {hi:.4g} | "
                 f"{m['worst']:.4g} (seed {m['worst_seed']}) |"
             )
-    lines += ["", "| seed | " + " | ".join(n for n, _ in MEASURES) + " |"]
+    lines += ["", "| seed | " + " | ".join(n for n, _, _ in MEASURES) + " |"]
     lines.append("|---" * (len(MEASURES) + 1) + "|")
     for s in seeds:
         ev = summary["per_seed"][str(s)]
-        cells = [f"{float(ev.get(n, math.nan)):.4g}" for n, _ in MEASURES]
+        cells = [f"{float(ev.get(n, math.nan)):.4g}" for n, _, _ in MEASURES]
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
