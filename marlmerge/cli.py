@@ -510,10 +510,8 @@ def sweep_cmd(args: argparse.Namespace) -> int:
     )
     print((out / "summary.md").read_text())
     where = f"on the {args.backend} backend"
-    if args.vectorized:
-        from marlmerge.training.sweep import seed_groups
-
-        groups = seed_groups(seeds, args.backend, args.workers)
+    groups = summary.get("groups")  # the seeds of each process of a vectorised sweep
+    if groups is not None:
         where = "in one process" if len(groups) == 1 else f"in {len(groups)} processes"
         where += f" ({'; '.join(', '.join(map(str, g)) for g in groups)})"
     print(f"{len(seeds)} seeds {where}; runs in {out}/seed_*")

@@ -267,6 +267,7 @@ def test_a_vectorised_sweep_splits_the_seeds_over_workers_and_matches_single_run
         "seeds_checkpoint_0_1.pt",
         "seeds_checkpoint_2.pt",
     ]
+    assert summary["groups"] == [[0, 1], [2]]  # what each process trained, in summary.json
     train(load_train_config("paper", **sets, seed=2), tmp_path / "single", progress=False)
     single = json.loads((tmp_path / "single" / "evaluation.json").read_text())
     assert json.dumps(summary["per_seed"]["2"]) == json.dumps(single)  # NaN where none merged

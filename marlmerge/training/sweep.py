@@ -211,7 +211,7 @@ def sweep(
         runs = run_tasks(run_group, tasks_v, backend, None, workers, address)
         results = [ev for group in runs for ev in group]
         where = f"{backend} (vectorized: {len(groups)} group{'s' * (len(groups) > 1)})"
-        return _write_summary(out, seeds, results, str(preset), kind, where, t0)
+        return _write_summary(out, seeds, results, str(preset), kind, where, t0, groups)
     tasks = [
         SeedTask(kind, str(preset), tuple(sorted(overrides.items())), s, str(out / f"seed_{s}"))
         for s in seeds
@@ -243,13 +243,17 @@ def sweep(
 
 def _write_summary(
     out: Path, seeds: list[int], results: list[dict], preset: str, kind: str, backend: str,
-    t0: float,
+    t0: float, groups: list[list[int]] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
+    """summary.json and summary.md; `groups`: the seeds of each process of a vectorised sweep
+    (one process per seed otherwise)."""
     import time
 
     wall = time.perf_counter() - t0
     summary = summarize(dict(zip(seeds, results, strict=True)))
     summary.update(preset=preset, kind=kind, backend=backend, wall_s=wall)
+    if groups is not None:
+        summary["groups"] = groups
     write_text(out / "summary.json", json.dumps(summary, indent=1))
     (out / "summary.md").write_text(summary_markdown(summary, preset, backend, wall))
     return summary
