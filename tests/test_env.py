@@ -151,7 +151,7 @@ def test_episode_end_and_next_ego():
         ego_done = term[EGO_AGENT] or trunc[EGO_AGENT]
         assert ego_done
         ego_ids.append(int(env.core.state.vehicle_id[0, 0]))
-        with pytest.raises(RuntimeError):
+        with pytest.raises(RuntimeError, match="on a finished episode: call reset"):
             env.step({EGO_AGENT: np.zeros(1)})
         env.reset()  # the next ramp vehicle departs into the same traffic
         assert env.core.state.x_m[0, 0] == env.cfg.road.x_ramp_start_m

@@ -82,6 +82,14 @@ def as_actions(
     return a
 
 
+def check_can_step(live_agents: list[str], started: bool) -> None:
+    """A PettingZoo step needs live agents: before the first reset, or after the episode has
+    ended, it is refused, saying which."""
+    if not live_agents:
+        when = "on a finished episode" if started else "before reset()"
+        raise RuntimeError(f"step() called {when}: call reset() first")
+
+
 def agent_actions(
     actions: Any,
     possible_agents: list[str],

@@ -66,7 +66,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from marlmerge.config import ScenarioConfig, check_count, require_ego
 from marlmerge.config.presets import find_preset, resolve_config  # noqa: F401  (their home: presets)
 from marlmerge.sim import EGO, OUTCOME_COLLISION, OUTCOME_NONE, OUTCOME_SUCCESS, TrafficCore
-from marlmerge.sim.action import action_bounds, action_size, agent_actions
+from marlmerge.sim.action import action_bounds, action_size, agent_actions, check_can_step
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
@@ -208,9 +208,7 @@ class RampMergeParallelEnv(ParallelEnv):
         return agent_actions(actions, self.possible_agents, self.agents, self.action_sizes)
 
     def step(self, actions: dict[str, Any]):
-        if not self.agents:
-            when = "before reset()" if self.core is None else "on a finished episode"
-            raise RuntimeError(f"step() called {when}: call reset() first")
+        check_can_step(self.agents, started=self.core is not None)
         core = self.core
         assert core is not None
         acts = self._parse_actions(actions)

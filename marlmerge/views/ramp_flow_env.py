@@ -61,7 +61,7 @@ from marlmerge.sim import (
     OUTCOME_TRUNCATED,
     TrafficCore,
 )
-from marlmerge.sim.action import action_bounds, action_size, agent_actions
+from marlmerge.sim.action import action_bounds, action_size, agent_actions, check_can_step
 from marlmerge.sim.observation import ramp_agent_features
 from marlmerge.sim.reward import EGO_TERMS, total_reward
 from marlmerge.sim.streams import check_seed
@@ -137,9 +137,7 @@ class RampFlowParallelEnv(ParallelEnv):
         return self._observe(slots), self._infos(self.agents, {}, none, slots)
 
     def step(self, actions: dict[str, Any]):
-        if not self.agents:
-            when = "before reset()" if self.core is None else "on a finished episode"
-            raise RuntimeError(f"step() called {when}: call reset() first")
+        check_can_step(self.agents, started=self.core is not None)
         core, table = self.core, self._table
         assert core is not None and table is not None
         acts = self._parse_actions(actions)
