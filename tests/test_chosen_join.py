@@ -197,6 +197,7 @@ def test_a_merge_where_nothing_merged_reports_undefined_values():
     assert set(row["lane_change_shares"].values()) == {None}
     assert row["braking_over_b_share"] == 0.0 and row["cut_ins"] == 0
     assert row["ramp_collisions_per_1000"] is None and row["ramp_delay_s_ci95"] == (None, None)
+    assert row["ramp_collisions_per_1000_ci95"] == (None, None)
     json.loads(json.dumps(row), parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
 
 

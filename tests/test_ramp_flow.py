@@ -2,13 +2,19 @@
 measured as a whole; the paper's one-ramp-vehicle mode untouched."""
 
 import json
+import math
 
 import numpy as np
 import pytest
 
 from marlmerge.cli import main
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.ramp_flow import merge_line, ramp_commands, run_ramp_flow
+from marlmerge.evaluation.ramp_flow import (
+    merge_line,
+    per_1000_interval,
+    ramp_commands,
+    run_ramp_flow,
+)
 from marlmerge.evaluation.registry import policy_from_spec
 from marlmerge.sim import TrafficCore
 from marlmerge.sim import layout as L
@@ -166,6 +172,19 @@ def test_run_ramp_flow_result_is_reproducible():
     assert {**a.to_dict(), "wall_s": 0} == {**b.to_dict(), "wall_s": 0}
     lo, hi = a.merged_vph_ci95
     assert lo <= a.merged_vph <= hi and a.ramp_delay_s > 0
+    merged = round(a.merged_vph * a.worlds * a.measured_s / 3600.0)
+    lo, hi = a.ramp_collisions_per_1000_ci95  # none collided: 0 to about 3.84 in merged + 3.84
+    assert a.ramp_collisions == 0 and lo == 0.0
+    assert hi == pytest.approx(1000.0 * 3.8415 / (merged + 3.8415), rel=1e-3)
+    assert f"0 collisions (0.00 [0.00, {hi:.2f}] per 1,000 merged)" in merge_line(a.to_dict())
+
+
+def test_collisions_per_1000_merged_carry_a_wilson_interval():
+    lo, hi = per_1000_interval(2, 2400)  # 0.83 per 1,000
+    assert lo == pytest.approx(0.2286, abs=1e-3) and hi == pytest.approx(3.0335, abs=1e-3)
+    # 5 collided, 3 merged: 5 trials
+    assert per_1000_interval(5, 3) == (pytest.approx(565.5, abs=0.1), 1000.0)
+    assert all(math.isnan(b) for b in per_1000_interval(0, 0))  # nothing merged: undefined
 
 
 def test_joining_when_safe_never_collides_and_stops_at_the_lanes_end():

@@ -102,6 +102,20 @@ def _num(value: float | None, digits: int = 0) -> str:
     return f"{value:.{digits}f}"
 
 
+def _delay(r: dict) -> str:
+    """The ramp delay (s) with its 95 % interval over worlds."""
+    lo, hi = r["ramp_delay_s_ci95"]
+    return f"{_num(r['ramp_delay_s'], 1)} [{_num(lo, 1)}, {_num(hi, 1)}]"
+
+
+def _per_1000(r: dict) -> str:
+    """The collisions per 1,000 merged with their 95 % interval (a cell measured before the
+    interval was reported: the rate alone)."""
+    lo, hi = r.get("ramp_collisions_per_1000_ci95", (None, None))
+    rate = _num(r["ramp_collisions_per_1000"], 2)
+    return rate if lo is None else f"{rate} [{_num(lo, 2)}, {_num(hi, 2)}]"
+
+
 def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
     """The summary's ramp-flow section."""
     if not results:
@@ -112,7 +126,8 @@ def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
         "## Merge under ramp flow",
         "",
         f"Every ramp vehicle driven by the policy, {worlds} worlds x {hours:g} h each "
-        f"(after {SKIP_S:.0f} s of settling); intervals over worlds. Braking: samples of the "
+        f"(after {SKIP_S:.0f} s of settling). 95 % intervals: merged flow and delay over "
+        "worlds; collisions Wilson's, each merged vehicle a trial. Braking: samples of the "
         "mainline around the merge harder than the drivers' comfortable b; entrance: share "
         "of the mainline's lane changes in its first 50 m.",
         "",
@@ -127,8 +142,8 @@ def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
         lines.append(
             f"| {r['policy']} | {run_name(r['run'])} | {r['condition']} | "
             f"{r['ramp_demand_vph']:g} | {r['merged_vph']:.0f} [{_num(lo)}, {_num(hi)}] | "
-            f"{_num(r['ramp_delay_s'], 1)} | {r['ramp_max_queue']} | "
-            f"{_num(r['ramp_collisions_per_1000'], 2)} | {r['mainline_speed_drop_mps']:.1f} | "
+            f"{_delay(r)} | {r['ramp_max_queue']} | "
+            f"{_per_1000(r)} | {r['mainline_speed_drop_mps']:.1f} | "
             f"{100 * r['braking_over_b_share']:.2f} | "
             f"{_num(None if entrance is None else 100 * entrance)} |"
         )

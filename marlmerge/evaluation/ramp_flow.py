@@ -36,6 +36,7 @@ import torch
 
 from marlmerge.config import ScenarioConfig, check_count
 from marlmerge.evaluation.merge_metrics import MergeTally
+from marlmerge.evaluation.metrics import wilson_interval
 from marlmerge.evaluation.registry import ShieldedPolicy, policy_for_evaluation
 from marlmerge.policies.gap_acceptance import ShieldTally
 from marlmerge.sim import layout as L
@@ -70,6 +71,9 @@ class RampFlowResult:
     ramp_max_queue: int
     ramp_collisions: int
     ramp_collisions_per_1000: float
+    ramp_collisions_per_1000_ci95: tuple[float, float]
+    """95 % Wilson interval of the collisions per 1,000 merged, each merged vehicle a trial
+    (`per_1000_interval`)."""
     background_collisions: int
     mainline_speed_merge_mps: float
     mainline_speed_upstream_mps: float
@@ -111,6 +115,13 @@ class RampFlowResult:
         return {k: _defined(v) for k, v in asdict(self).items()}
 
 
+def _per_1000_bounds(row: dict[str, Any]) -> str:
+    """`[low, high]` of the collisions per 1,000 merged, or "" in a result written before the
+    interval was reported."""
+    bounds = row.get("ramp_collisions_per_1000_ci95")
+    return "" if bounds is None else f" [{bounds[0]:.2f}, {bounds[1]:.2f}]"
+
+
 def merge_line(row: dict[str, Any]) -> str:
     """One line of what a ramp-flow run measured, from its `RampFlowResult.to_dict()` (as
     `rampflow` and `evaluate` print it)."""
@@ -122,8 +133,9 @@ def merge_line(row: dict[str, Any]) -> str:
     return (
         f"merged {row['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
         f"{row['ramp_delay_s']:.1f} s, longest queue {row['ramp_max_queue']}, "
-        f"{row['ramp_collisions']} collisions ({row['ramp_collisions_per_1000']:.2f} per 1,000 "
-        f"merged); mainline {row['mainline_speed_upstream_mps']:.1f} -> "
+        f"{row['ramp_collisions']} collisions ({row['ramp_collisions_per_1000']:.2f}"
+        f"{_per_1000_bounds(row)} per 1,000 merged); mainline "
+        f"{row['mainline_speed_upstream_mps']:.1f} -> "
         f"{row['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
         f"{row['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), braking "
         f"> b in {100 * row['braking_over_b_share']:.2f} % of samples (hardest "
@@ -173,6 +185,17 @@ def _interval(per_world: np.ndarray) -> tuple[float, float]:
         return (mean, mean)
     half = 1.96 * float(per_world.std(ddof=1)) / math.sqrt(n)
     return (mean - half, mean + half)
+
+
+def per_1000_interval(count: int, merged: int) -> tuple[float, float]:
+    """95 % Wilson interval of `count` events per 1,000 of `merged` vehicles, each merged vehicle
+    a trial (at least `count` of them: a vehicle that collided before it merged counts as
+    one); (NaN, NaN) where nothing merged. Vehicles of one world are taken as independent,
+    so a jam that causes several collisions at once makes the interval too narrow."""
+    if merged <= 0:
+        return (math.nan, math.nan)
+    lo, hi = wilson_interval(count, max(merged, count))
+    return (1000.0 * lo, 1000.0 * hi)
 
 
 def ramp_commands(policy: object, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -422,6 +445,9 @@ def _result(
         ramp_max_queue=int(after["ramp_max_queue"].max()),
         ramp_collisions=int(d["ramp_collisions"].sum()),
         ramp_collisions_per_1000=per_merged(1000.0 * float(d["ramp_collisions"].sum())),
+        ramp_collisions_per_1000_ci95=per_1000_interval(
+            int(d["ramp_collisions"].sum()), int(total_passed)
+        ),
         background_collisions=int(d["background_collisions"].sum()),
         mainline_speed_merge_mps=float(v_merge),
         mainline_speed_upstream_mps=float(v_up),
