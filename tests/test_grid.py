@@ -276,3 +276,21 @@ def test_the_grid_adds_importance_sampled_collision_rates(tmp_path, capsys):
     ] == table
     with pytest.raises(SystemExit):
         main([*argv, "--estimator", "bayes"])
+
+
+def test_the_worst_cells_in_the_summary_carry_their_intervals():
+    from marlmerge.evaluation.grid import _by_cell, _overall_table, _runs_table
+
+    def row(run: str, cond: str, ok: bool) -> dict:
+        return {"policy": "p", "run": f"runs/{run}", "condition": cond, "success": float(ok),
+                "collision": float(not ok), "truncation": 0.0, "time_to_merge_s": 10.0,
+                "max_abs_jerk_mps3": 5.0}  # fmt: skip
+
+    rows = [row("r1", "a", True)] * 10 + [row("r2", "a", True)] * 10
+    rows += [row("r1", "b", i < 9) for i in range(10)] + [row("r2", "b", i < 5) for i in range(10)]
+    overall = _overall_table(rows, _by_cell(rows), ["p"], ["a", "b"])[2]
+    assert "| b: 70.0 [48.1–85.5] | r2 in b: 50.0 [23.7–76.3] |" in overall  # Wilson, 14/20, 5/10
+    runs = _runs_table(rows, ["p"], ["a", "b"])
+    assert runs[4].endswith("| b: 90.0 [59.6–98.2] |") and runs[5].endswith(
+        "| b: 50.0 [23.7–76.3] |"
+    )

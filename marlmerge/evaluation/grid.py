@@ -512,15 +512,13 @@ def _overall_table(
         by_run: dict[tuple[str, str], list[float]] = {}
         for r in mine:
             by_run.setdefault((r["run"], r["condition"]), []).append(float(r["success"]))
-        pooled = {c: float(np.mean(_cell(cells, p, c, "success"))) for c in conds}
-        worst_c = min(pooled, key=pooled.get)
-        (run, cond), worst = min(
-            ((k, float(np.mean(v))) for k, v in by_run.items()), key=lambda kv: kv[1]
-        )
+        pooled = {c: _cell(cells, p, c, "success") for c in conds}
+        worst_c = min(conds, key=lambda c: float(np.mean(pooled[c])))
+        run, cond = min(by_run, key=lambda k: float(np.mean(by_run[k])))
         lines.append(
             f"| {p} | {len(mine)} | {rate['success']} | {rate['collision']} | "
-            f"{rate['truncation']} | {worst_c}: {100 * pooled[worst_c]:.1f} | "
-            f"{run_name(run)} in {cond}: {100 * worst:.1f} | "
+            f"{rate['truncation']} | {worst_c}: {_fmt_rate(pooled[worst_c])} | "
+            f"{run_name(run)} in {cond}: {_fmt_rate(np.array(by_run[(run, cond)]))} | "
             f"{_fmt_mean(np.array([float(r['time_to_merge_s']) for r in mine]))} | "
             f"{_fmt_mean(np.array([float(r['max_abs_jerk_mps3']) for r in mine]))} |"
         )
@@ -554,13 +552,16 @@ def _runs_table(rows: list[dict], policies: list[str], conds: list[str]) -> list
             continue
         for run in runs:
             mine = by_run[(p, run)]
-            succ = {c: [float(r["success"]) for r in mine if r["condition"] == c] for c in conds}
+            succ = {
+                c: np.array([float(r["success"]) for r in mine if r["condition"] == c])
+                for c in conds
+            }
             worst = min(conds, key=lambda c: float(np.mean(succ[c])))
             lines.append(
                 f"| {p} | {run_name(run)} | "
                 f"{_fmt_rate2(np.array([float(r['success']) for r in mine]))} | "
                 f"{_fmt_rate2(np.array([float(r['collision']) for r in mine]))} | "
-                f"{worst}: {100 * np.mean(succ[worst]):.1f} |"
+                f"{worst}: {_fmt_rate(succ[worst])} |"
             )
     return [*lines, ""] if len(lines) > 4 else []
 
