@@ -52,6 +52,7 @@ def ramp_flow(hours: float, worlds: int, seed: int) -> list[dict]:
                 row = {"policy": rule, "join": join, "ramp_demand_vph": demand}
                 rows.append({**row, **{k: getattr(r, k) for k in keep}})
                 rows[-1]["collisions_per_1000"] = r.ramp_collisions_per_1000
+                rows[-1]["collisions_per_1000_ci95"] = r.ramp_collisions_per_1000_ci95
                 print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -81,15 +82,16 @@ def table(ego: list[dict], flow: list[dict], args: argparse.Namespace) -> str:
         f"seed {args.seed})",
         "",
         "| policy | join | ramp demand veh/h | merged veh/h [95 % CI] | ramp delay s | "
-        "collisions per 1,000 merged |",
+        "collisions per 1,000 merged [95 % CI] |",
         "|---|---|---|---|---|---|",
     ]
     for r in flow:
         lo, hi = r["merged_vph_ci95"]
+        c_lo, c_hi = r["collisions_per_1000_ci95"]
         out.append(
             f"| {r['policy']} | {r['join']} | {r['ramp_demand_vph']:.0f} | "
             f"{r['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] | {r['ramp_delay_s']:.1f} | "
-            f"{r['collisions_per_1000']:.2f} |"
+            f"{r['collisions_per_1000']:.2f} [{c_lo:.2f}, {c_hi:.2f}] |"
         )
     return "\n".join(out) + "\n"
 
