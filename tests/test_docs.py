@@ -49,6 +49,20 @@ def test_the_readme_is_a_front_page():
 
 
 @pytest.mark.slow
+def test_every_rate_in_the_readme_results_carries_its_interval():
+    """A percentage in the results table's `result` column is followed by its 95 % interval
+    (`[low, high]` within a few words) or is a tolerance ("within 10 %")."""
+    readme = (ROOT / "README.md").read_text()
+    table = readme.split("## Results", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ")]
+    results = [cells[1] for cells in rows[2:]]  # after the header and its rule
+    assert len(results) >= 10
+    for cell in results:
+        for m in re.finditer(r"(\d+(?:\.\d+)?) %", cell):
+            after, before = cell[m.end() : m.end() + 30], cell[max(0, m.start() - 7) : m.start()]
+            assert "[" in after or before == "within ", f"{m.group(0)} without interval: {cell}"
+
+
 def test_the_site_builds_strictly(tmp_path):
     pytest.importorskip("mkdocs", reason="the [docs] extra is not installed")
     out = subprocess.run(
