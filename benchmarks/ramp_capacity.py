@@ -71,24 +71,27 @@ def _table(rows: list[dict], args: argparse.Namespace) -> str:
         "",
         f"Written by `python benchmarks/ramp_capacity.py --hours {args.hours:g} --worlds "
         f"{args.worlds}` ({args.worlds} worlds x {args.hours:g} h per row after 300 s of "
-        "settling; merged flow with its 95 % interval over worlds). Lane changes and braking: "
+        "settling; merged flow with its 95 % interval over worlds, collisions per 1,000 merged "
+        "with Wilson's, each merged vehicle a trial). Lane changes and braking: "
         "the mainline, one sample per vehicle and control step "
         "(`marlmerge.evaluation.merge_metrics`); braking around the merge; a cut-in's follower "
         "is watched for 3 s.",
         "",
         "| variant | mainline veh/h/lane | ramp demand veh/h | merged veh/h | ramp delay s "
-        "| longest ramp queue | ramp collisions | per 1,000 merged "
+        "| longest ramp queue | ramp collisions | per 1,000 merged [95 % CI] "
         "| mainline speed upstream -> zone m/s | mainline lane changes at the entrance % "
         "| braking > b % | hardest braking m/s² | cut-ins followed by braking > b |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lo, hi = r["merged_vph_ci95"]
+        c_lo, c_hi = r["ramp_collisions_per_1000_ci95"]
         lines.append(
             f"| {r['variant']} | {r['mainline_demand_vph_per_lane']:g} | "
             f"{r['ramp_demand_vph']:g} | {r['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] | "
             f"{r['ramp_delay_s']:.1f} | {r['ramp_max_queue']} | {r['ramp_collisions']} | "
-            f"{r['ramp_collisions_per_1000']:.2f} | {r['mainline_speed_upstream_mps']:.1f} -> "
+            f"{r['ramp_collisions_per_1000']:.2f} [{c_lo:.2f}, {c_hi:.2f}] | "
+            f"{r['mainline_speed_upstream_mps']:.1f} -> "
             f"{r['mainline_speed_merge_mps']:.1f} | {_percent(r['lane_change_shares']['entrance'])}"
             f" | {100 * r['braking_over_b_share']:.2f} | {r['hardest_braking_mps2']:.1f} | "
             f"{r['cut_ins_braking_over_b']} of {r['cut_ins']} |"
