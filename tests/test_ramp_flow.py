@@ -179,6 +179,16 @@ def test_run_ramp_flow_result_is_reproducible():
     assert f"0 collisions (0.00 [0.00, {hi:.2f}] per 1,000 merged)" in merge_line(a.to_dict())
 
 
+def test_one_world_has_no_interval_over_worlds():
+    row = run_ramp_flow(FLOW, "gap", hours=0.05, worlds=1, seed=1, skip_s=60).to_dict()
+    assert row["merged_vph"] > 0 and row["ramp_delay_s"] > 0
+    assert row["merged_vph_ci95"] == (None, None) == row["ramp_delay_s_ci95"]  # not [x, x]
+    lo, hi = row["ramp_collisions_per_1000_ci95"]  # counts of vehicles still have one
+    line = merge_line(row)
+    assert f"merged {row['merged_vph']:.0f} veh/h, ramp delay {row['ramp_delay_s']:.1f} s" in line
+    assert f"[{lo:.2f}, {hi:.2f}] per 1,000 merged" in line
+
+
 def test_collisions_per_1000_merged_carry_a_wilson_interval():
     lo, hi = per_1000_interval(2, 2400)  # 0.83 per 1,000
     assert lo == pytest.approx(0.2286, abs=1e-3) and hi == pytest.approx(3.0335, abs=1e-3)

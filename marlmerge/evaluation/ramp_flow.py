@@ -115,11 +115,12 @@ class RampFlowResult:
         return {k: _defined(v) for k, v in asdict(self).items()}
 
 
-def _per_1000_bounds(row: dict[str, Any]) -> str:
-    """`[low, high]` of the collisions per 1,000 merged, or "" in a result written before the
-    interval was reported."""
-    bounds = row.get("ramp_collisions_per_1000_ci95")
-    return "" if bounds is None else f" [{bounds[0]:.2f}, {bounds[1]:.2f}]"
+def _bounds(bounds: Any, digits: int) -> str:
+    """` [low, high]`, or "" where there is none: one world has no interval over worlds, and a
+    result written before the collisions' interval was reported has none of those."""
+    if bounds is None or bounds[0] is None:
+        return ""
+    return f" [{bounds[0]:.{digits}f}, {bounds[1]:.{digits}f}]"
 
 
 def merge_line(row: dict[str, Any]) -> str:
@@ -127,14 +128,14 @@ def merge_line(row: dict[str, Any]) -> str:
     `rampflow` and `evaluate` print it)."""
     if row["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
         return f"no ramp vehicle merged, {row['ramp_collisions']} collisions"
-    lo, hi = row["merged_vph_ci95"]
     entrance = row["lane_change_shares"]["entrance"]
     share = "-" if entrance is None else f"{100 * entrance:.0f} %"
     return (
-        f"merged {row['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] veh/h, ramp delay "
-        f"{row['ramp_delay_s']:.1f} s, longest queue {row['ramp_max_queue']}, "
-        f"{row['ramp_collisions']} collisions ({row['ramp_collisions_per_1000']:.2f}"
-        f"{_per_1000_bounds(row)} per 1,000 merged); mainline "
+        f"merged {row['merged_vph']:.0f}{_bounds(row['merged_vph_ci95'], 0)} veh/h, ramp delay "
+        f"{row['ramp_delay_s']:.1f}{_bounds(row['ramp_delay_s_ci95'], 1)} s, longest queue "
+        f"{row['ramp_max_queue']}, {row['ramp_collisions']} collisions "
+        f"({row['ramp_collisions_per_1000']:.2f}"
+        f"{_bounds(row.get('ramp_collisions_per_1000_ci95'), 2)} per 1,000 merged); mainline "
         f"{row['mainline_speed_upstream_mps']:.1f} -> "
         f"{row['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
         f"{row['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), braking "
@@ -176,14 +177,13 @@ def _defined(value: object) -> object:
 
 
 def _interval(per_world: np.ndarray) -> tuple[float, float]:
-    """95 % t-interval of the mean over worlds (normal quantile: worlds >= 2; NaN: none)."""
+    """95 % interval of the mean over worlds (normal quantile); (NaN, NaN) from fewer than two
+    worlds, whose spread is unknown."""
     n = per_world.size
-    if n == 0:
-        return (math.nan, math.nan)
-    mean = float(per_world.mean())
     if n < 2:
-        return (mean, mean)
+        return (math.nan, math.nan)
     half = 1.96 * float(per_world.std(ddof=1)) / math.sqrt(n)
+    mean = float(per_world.mean())
     return (mean - half, mean + half)
 
 
