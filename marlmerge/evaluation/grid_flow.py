@@ -102,25 +102,12 @@ def _num(value: float | None, digits: int = 0) -> str:
     return f"{value:.{digits}f}"
 
 
-def _delay(r: dict) -> str:
-    """The ramp delay (s) with its 95 % interval over worlds."""
-    lo, hi = r["ramp_delay_s_ci95"]
-    return f"{_num(r['ramp_delay_s'], 1)} [{_num(lo, 1)}, {_num(hi, 1)}]"
-
-
-def _per_1000(r: dict) -> str:
-    """The collisions per 1,000 merged with their 95 % interval (a cell measured before the
-    interval was reported: the rate alone)."""
-    lo, hi = r.get("ramp_collisions_per_1000_ci95", (None, None))
-    rate = _num(r["ramp_collisions_per_1000"], 2)
-    return rate if lo is None else f"{rate} [{_num(lo, 2)}, {_num(hi, 2)}]"
-
-
 def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
     """The summary's ramp-flow section."""
     if not results:
         return []
     from marlmerge.evaluation.grid import run_name
+    from marlmerge.evaluation.ramp_flow import bounds_text
 
     lines = [
         "## Merge under ramp flow",
@@ -137,13 +124,15 @@ def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        lo, hi = r["merged_vph_ci95"]
         entrance = r["lane_change_shares"]["entrance"]
         lines.append(
             f"| {r['policy']} | {run_name(r['run'])} | {r['condition']} | "
-            f"{r['ramp_demand_vph']:g} | {r['merged_vph']:.0f} [{_num(lo)}, {_num(hi)}] | "
-            f"{_delay(r)} | {r['ramp_max_queue']} | "
-            f"{_per_1000(r)} | {r['mainline_speed_drop_mps']:.1f} | "
+            f"{r['ramp_demand_vph']:g} | "
+            f"{r['merged_vph']:.0f}{bounds_text(r['merged_vph_ci95'], 0)} | "
+            f"{_num(r['ramp_delay_s'], 1)}{bounds_text(r['ramp_delay_s_ci95'], 1)} | "
+            f"{r['ramp_max_queue']} | {_num(r['ramp_collisions_per_1000'], 2)}"
+            f"{bounds_text(r.get('ramp_collisions_per_1000_ci95'), 2)} | "
+            f"{r['mainline_speed_drop_mps']:.1f} | "
             f"{100 * r['braking_over_b_share']:.2f} | "
             f"{_num(None if entrance is None else 100 * entrance)} |"
         )

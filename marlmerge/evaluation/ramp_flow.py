@@ -115,9 +115,11 @@ class RampFlowResult:
         return {k: _defined(v) for k, v in asdict(self).items()}
 
 
-def _bounds(bounds: Any, digits: int) -> str:
-    """` [low, high]`, or "" where there is none: one world has no interval over worlds, and a
-    result written before the collisions' interval was reported has none of those."""
+def bounds_text(bounds: Any, digits: int) -> str:
+    """` [low, high]` of a `*_ci95` of `RampFlowResult.to_dict()`, or "" where there is none:
+    one world has no interval over worlds, nothing merged has none, and a result written before
+    the collisions' interval was reported has none of those (as `merge_line` and the grid's
+    ramp-flow table print them)."""
     if bounds is None or bounds[0] is None:
         return ""
     return f" [{bounds[0]:.{digits}f}, {bounds[1]:.{digits}f}]"
@@ -131,11 +133,11 @@ def merge_line(row: dict[str, Any]) -> str:
     entrance = row["lane_change_shares"]["entrance"]
     share = "-" if entrance is None else f"{100 * entrance:.0f} %"
     return (
-        f"merged {row['merged_vph']:.0f}{_bounds(row['merged_vph_ci95'], 0)} veh/h, ramp delay "
-        f"{row['ramp_delay_s']:.1f}{_bounds(row['ramp_delay_s_ci95'], 1)} s, longest queue "
+        f"merged {row['merged_vph']:.0f}{bounds_text(row['merged_vph_ci95'], 0)} veh/h, ramp delay "
+        f"{row['ramp_delay_s']:.1f}{bounds_text(row['ramp_delay_s_ci95'], 1)} s, longest queue "
         f"{row['ramp_max_queue']}, {row['ramp_collisions']} collisions "
         f"({row['ramp_collisions_per_1000']:.2f}"
-        f"{_bounds(row.get('ramp_collisions_per_1000_ci95'), 2)} per 1,000 merged); mainline "
+        f"{bounds_text(row.get('ramp_collisions_per_1000_ci95'), 2)} per 1,000 merged); mainline "
         f"{row['mainline_speed_upstream_mps']:.1f} -> "
         f"{row['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
         f"{row['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), braking "
@@ -423,6 +425,7 @@ def _result(
     some = d["ramp_passed"] > 0  # [B] worlds where a ramp vehicle merged
     delay = d["ramp_travel_s"][some] / d["ramp_passed"][some] - free_s  # [B'] per world
     total_passed = float(d["ramp_passed"].sum())
+    collisions = int(d["ramp_collisions"].sum())
 
     def per_merged(x: float) -> float:  # none merged: undefined
         return x / total_passed if total_passed > 0 else math.nan
@@ -443,11 +446,9 @@ def _result(
         ramp_delay_s_ci95=_interval(delay),
         ramp_wait_s=float(d["ramp_wait_s"].sum() / max(float(d["ramp_entered"].sum()), 1.0)),
         ramp_max_queue=int(after["ramp_max_queue"].max()),
-        ramp_collisions=int(d["ramp_collisions"].sum()),
-        ramp_collisions_per_1000=per_merged(1000.0 * float(d["ramp_collisions"].sum())),
-        ramp_collisions_per_1000_ci95=per_1000_interval(
-            int(d["ramp_collisions"].sum()), int(total_passed)
-        ),
+        ramp_collisions=collisions,
+        ramp_collisions_per_1000=per_merged(1000.0 * collisions),
+        ramp_collisions_per_1000_ci95=per_1000_interval(collisions, int(total_passed)),
         background_collisions=int(d["background_collisions"].sum()),
         mainline_speed_merge_mps=float(v_merge),
         mainline_speed_upstream_mps=float(v_up),
