@@ -75,8 +75,16 @@ def _run_config(
     command line that is not the run's, is an error naming it)."""
     from marlmerge.config.presets import run_scenario
     from marlmerge.training.checkpoint import resume_config
+    from marlmerge.training.seeds import CHECKPOINT_NAME
 
     run_scenario(cfg)
+    one, many = "checkpoint.pt", CHECKPOINT_NAME  # a single run's, a --seeds run's
+    if name in (one, many) and (out / (many if name == one else one)).exists():
+        kind = "of several seeds (--seeds)" if name == one else "of one seed (no --seeds)"
+        raise ValueError(
+            f"{out} holds a run {kind}: continue it as it was started (with --resume), or use "
+            "another --out"
+        )
     has_run = (out / name).exists()
     if has_run and not resume:
         raise ValueError(
@@ -162,19 +170,46 @@ def _train_seeds_cmd(args: argparse.Namespace, cfg: Any, sets: dict[str, Any], o
 
 def cotrain_cmd(args: argparse.Namespace) -> int:
     """Co-train learned highway agents and the ego (alternating phases)."""
-    from marlmerge.training.cotrain import CoTrainConfig, cotrain, load_cotrain_config
+    from marlmerge.training.cotrain import (
+        SEEDS_CHECKPOINT,
+        CoTrainConfig,
+        cotrain,
+        cotrain_seeds,
+        load_cotrain_config,
+    )
+    from marlmerge.training.sweep import parse_seeds
 
     sets = _parse_sets(args.set)
     cfg = load_cotrain_config(args.preset, **sets)
     out = Path(args.out or f"runs/{cfg.name}")
-    cfg = _run_config(CoTrainConfig, out, cfg, sets, args.resume)
+    seeds = None if args.seeds is None else parse_seeds(args.seeds)
+    if seeds is not None and "seed" in sets:
+        raise ValueError(f"--seeds {args.seeds} and --set seed={sets['seed']}: give one of them")
+    name = "checkpoint.pt" if seeds is None else SEEDS_CHECKPOINT
+    cfg = _run_config(CoTrainConfig, out, cfg, sets, args.resume, name)
     phases = ", ".join(f"{kind} {n:,}" for kind, n in cfg.phases())
+    who = f"seed {cfg.seed}" if seeds is None else f"seeds {', '.join(map(str, seeds))}"
     print(
         f"co-training {cfg.name!r} ({cfg.profile} highway agents) on scenario "
-        f"{cfg.scenario!r}, seed {cfg.seed}, writing {out}; phases (simulator steps): {phases}",
+        f"{cfg.scenario!r}, {who}, writing {out}{'' if seeds is None else '/seed_*'}; "
+        f"phases (simulator steps): {phases}",
         flush=True,
     )
-    result = cotrain(cfg, out, resume=args.resume, progress=not args.no_progress)
+    progress = not args.no_progress
+    if seeds is None:
+        results = [cotrain(cfg, out, resume=args.resume, progress=progress)]
+    else:
+        results = cotrain_seeds(cfg, seeds, out, resume=args.resume, progress=progress)
+    for result in results:
+        _print_cotrain_result(result, seeds is not None)
+    return 0
+
+
+def _print_cotrain_result(result: Any, many: bool) -> None:
+    """What one co-training run did, its ego selection and evaluations."""
+    out = result.out_dir
+    if many:
+        print(f"{out.name}:")
     if result.already_finished:
         print(f"{out} had finished co-training and been evaluated: nothing to do, nothing changed")
     print(
@@ -198,7 +233,6 @@ def cotrain_cmd(args: argparse.Namespace) -> int:
         print(f"selected ego vs {name.replace('_', ' ')} traffic:")
         _print_evaluation(ev)
     print(f"logs, checkpoint and policies in {out}")
-    return 0
 
 
 def _print_evaluation(ev: dict) -> None:
@@ -687,6 +721,12 @@ def _add_cotrain(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar="KEY=VALUE",
         help="override a CoTrainConfig field, e.g. --set seed=1 (repeatable)",
+    )
+    c.add_argument(
+        "--seeds",
+        default=None,
+        help="co-train these seeds in one process (e.g. 0-3 or 0,2,5) into OUT/seed_S, each "
+        "bit for bit its own single run",
     )
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=cotrain_cmd)

@@ -1,6 +1,8 @@
-"""Co-training at a tiny budget: both phases run, both groups are checkpointed, a kill resumes."""
+"""Co-training at a tiny budget: both phases run, both groups are checkpointed, a kill resumes;
+seeds co-trained in one process are their single runs."""
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -14,6 +16,7 @@ from marlmerge.learners.loading import load_policy
 from marlmerge.training.cotrain import (
     CoTrainConfig,
     cotrain,
+    cotrain_seeds,
     load_cotrain_config,
     load_highway_policy,
 )
@@ -146,3 +149,81 @@ def test_cli_runs_the_preset_and_reports_the_selection(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "ego selection" in printed and "selected ego vs scripted traffic" in printed
     assert (out / "policy.pt").exists()
+
+
+def _files(folder):
+    """Every file a run wrote (but the checkpoint), by path, as bytes."""
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != "checkpoint.pt"
+    }
+
+
+@pytest.mark.slow
+def test_cotrained_seeds_are_their_single_runs_and_resume_exactly(tmp_path):
+    # PPO adversaries shaped by the ego's value: the highway group's sampling, its on-policy
+    # rollouts and the batch changed in place, each seed on its own slice of the worlds
+    cfg = _tiny(rounds=1, highway_algorithm="ppo", ego_value_shaping=0.5)
+    cotrain(dataclasses.replace(cfg, seed=5), tmp_path / "single", progress=False)
+    both = cotrain_seeds(cfg, [0, 5], tmp_path / "both", progress=False)
+    assert [r.out_dir.name for r in both] == ["seed_0", "seed_5"]
+    assert (tmp_path / "both" / "seeds_checkpoint.pt").exists()
+    single = _files(tmp_path / "single")
+    assert set(single) >= {"policy.pt", "highway_policy.pt", "egos.csv", "evaluation.json"}
+    assert _files(tmp_path / "both" / "seed_5") == single
+    assert _files(tmp_path / "both" / "seed_0") != single
+    # killed inside the adversary phase, then resumed: every seed as if never stopped
+    cut = tmp_path / "cut"
+    cotrain_seeds(cfg, [0, 5], cut, progress=False, stop_after_sim_steps=6_700)
+    assert not (cut / "seed_5" / "policy.pt").exists()
+    with pytest.raises(ValueError, match="already holds a run"):
+        cotrain_seeds(cfg, [0, 5], cut, progress=False)
+    with pytest.raises(ValueError, match="seeds \\[0, 5\\], not \\[0, 6\\]"):
+        cotrain_seeds(cfg, [0, 6], cut, resume=True, progress=False)
+    cotrain_seeds(cfg, [0, 5], cut, resume=True, progress=False)
+    for seed in (0, 5):
+        assert _files(cut / f"seed_{seed}") == _files(tmp_path / "both" / f"seed_{seed}")
+    again = cotrain_seeds(cfg, [0, 5], cut, resume=True, progress=False)
+    assert all(r.already_finished for r in again)
+
+
+def test_bad_seeds_for_cotraining_are_named(tmp_path, capsys):
+    with pytest.raises(ValueError, match="distinct seeds"):
+        cotrain_seeds(_tiny(), [1, 1], tmp_path)
+    sets = ["--set", "seed=2", "--seeds", "0-1", "--out", str(tmp_path)]
+    assert main(["cotrain", "cotrain", *sets]) == 2
+    assert "give one of them" in capsys.readouterr().err
+    assert main(["cotrain", "cotrain", "--seeds", "3-1", "--out", str(tmp_path)]) == 2
+    assert "3-1" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())  # refused before any work
+    # a folder holds runs of one kind: a single run's is not continued as seeds, nor the reverse
+    (tmp_path / "one").mkdir()
+    (tmp_path / "one" / "checkpoint.pt").touch()
+    assert main(["cotrain", "cotrain", "--seeds", "0-1", "--out", str(tmp_path / "one")]) == 2
+    assert "holds a run of one seed" in capsys.readouterr().err
+    (tmp_path / "many").mkdir()
+    (tmp_path / "many" / "seeds_checkpoint.pt").touch()
+    assert main(["train", "--resume", "--out", str(tmp_path / "many")]) == 2
+    assert "holds a run of several seeds" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_vectorised_sweep_of_a_cotraining_recipe_runs_its_seeds_in_one_process(tmp_path, capsys):
+    sets = [a for k, v in {**TINY, "rounds": 1}.items() for a in ("--set", f"{k}={v}")]
+    out = tmp_path / "sweep"
+    args = ["sweep", "cotrain", "--seeds", "0-1", "--vectorized", "--backend", "serial"]
+    assert main([*args, *sets, "--out", str(out), "--no-progress"]) == 0
+    assert (out / "seeds_checkpoint_0_1.pt").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["seeds"] == [0, 1]
+    for seed in (0, 1):  # the scripted-traffic evaluation of each seed's selected ego
+        ev = json.loads((out / f"seed_{seed}" / "evaluation.json").read_text())
+        assert summary["per_seed"][str(seed)] == ev["scripted"]
+    assert main(["cotrain", "cotrain", *sets, "--seeds", "0,1", "--out", str(tmp_path / "cli"),
+                 "--no-progress"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "seeds 0, 1" in printed and printed.count("ego selection") == 2
+    cli = tmp_path / "cli"
+    for seed in (0, 1):
+        assert _files(cli / f"seed_{seed}") == _files(out / f"seed_{seed}")

@@ -80,3 +80,20 @@ def test_bad_highway_actions_raise_naming_the_agent():
         env.step(td)
     with pytest.raises(ValueError, match="opponent"):
         env.set_opponent_mix(0, 0.5)
+
+
+def test_an_env_of_several_seeds_runs_each_seed_as_its_own_env():
+    many = MultiAgentMergeEnv(num_worlds=3, group_seeds=[4, 9])
+    one = MultiAgentMergeEnv(num_worlds=3, seed=9)
+    for env in (many, one):
+        env.set_opponent_mix(3, 0.4)  # opponents drawn anew for every ego
+    tm = many.rollout(150, _const_policy(1.0, 0.5), break_when_any_done=False)
+    to = one.rollout(150, _const_policy(1.0, 0.5), break_when_any_done=False)
+    assert tm.batch_size[0] == 6 and to["next", "done"].sum() >= 6
+    part = tm[3:]  # seed 9's worlds
+    for key in ("opponent", ("next", "observation"), ("next", "reward"), ("next", GROUP, "reward")):
+        assert torch.equal(part[key], to[key]), key
+    assert len(torch.unique(to["opponent"])) >= 3  # drawn anew: scripted and learned ones
+    assert not torch.equal(tm[:3]["opponent"], to["opponent"])  # seed 4 draws its own
+    with pytest.raises(ValueError, match="seeded when it is made"):
+        many.set_seed(1)

@@ -149,8 +149,11 @@ class SeedsPolicy:
 
 
 class SeedGroups:
-    """The ego groups of S seeds as one feed of the loop: each stores its own slice of the
-    batch; the quadratic-Q fast path learns in one fused call, other learners one by one."""
+    """The learning groups of S seeds as one feed of the loop: each stores its own slice of
+    the batch; the quadratic-Q fast path learns in one fused call, other learners one by one.
+    Seeds that owe different updates or have made different numbers (a replay short of
+    `learning_starts` in one seed but not another, as highway agents' transitions fill it at
+    their own rate: the skipped updates are never made) learn one by one."""
 
     def __init__(self, groups: list[LearningGroup]) -> None:
         self.groups = groups
@@ -189,8 +192,12 @@ class SeedGroups:
                 group.learn()
             return
         owed = [g.take_owed() for g in self.groups]
-        if len(set(owed)) != 1:  # pragma: no cover - the seeds step in lockstep
-            raise RuntimeError(f"seeds out of step: updates owed {owed}")
+        counts = {u.num_updates for u in self.fused.updaters}  # made, not skipped
+        if len(set(owed)) != 1 or len(counts) != 1:  # replays that filled at other rates
+            for group, n in zip(self.groups, owed, strict=True):
+                if n is not None:  # each seed's own update: the fused one's, bit for bit
+                    group.record(group.learner.learn(group.replay, n, group.batch_size))
+            return
         if owed[0] is None:
             return
         losses = []

@@ -188,7 +188,8 @@ def sweep(
 ) -> dict[str, Any]:
     """Train `preset` once per seed on `backend` and summarise; see the module docstring. The
     preset's `kind` says whether it is a `train` or a `cotrain` recipe. `vectorized`: all seeds
-    in this process (`marlmerge.training.seeds`; `train` recipes only), not one task each."""
+    in one process per worker (`marlmerge.training.seeds`, `cotrain_seeds`), not one task
+    each."""
     import time
 
     from marlmerge.config.presets import preset_kind
@@ -200,13 +201,10 @@ def sweep(
         raise ValueError("sweep: give the seeds with --seeds, not --set seed=...")
     out = Path(out_dir)
     if vectorized:
-        if kind != "train":
-            raise ValueError(f"sweep --vectorized: {preset!r} is a {kind} recipe; only train")
         t0 = time.perf_counter()
         groups = seed_groups(seeds, backend, workers)
-        tasks_v = [
-            GroupTask(str(preset), tuple(sorted(overrides.items())), g, str(out)) for g in groups
-        ]
+        sets = tuple(sorted(overrides.items()))
+        tasks_v = [GroupTask(kind, str(preset), sets, g, str(out)) for g in groups]
         check_group_tasks(tasks_v)
         runs = run_tasks(run_group, tasks_v, backend, None, workers, address)
         results = [ev for group in runs for ev in group]
@@ -261,8 +259,10 @@ def _write_summary(
 
 @dataclass(frozen=True)
 class GroupTask:
-    """Seeds trained together in one process (`train_seeds`), one task of a vectorised sweep."""
+    """Seeds trained together in one process (`train_seeds` or `cotrain_seeds`, by the
+    recipe's `kind`), one task of a vectorised sweep."""
 
+    kind: str
     preset: str
     overrides: tuple[tuple[str, Any], ...]
     seeds: list[int]
@@ -292,11 +292,12 @@ def check_group_tasks(tasks: list[GroupTask]) -> None:
     """Before any work: the recipe loads and can be vectorised, and the sweep folder holds no
     run that these groups would not continue (single runs, or other groups)."""
     from marlmerge.training.seeds import check_seeds
-    from marlmerge.training.train import load_train_config
 
     out = Path(tasks[0].out_dir)
-    cfg = load_train_config(tasks[0].preset, **dict(tasks[0].overrides))
-    check_seeds(cfg, [s for t in tasks for s in t.seeds])
+    first = tasks[0]
+    cfg = _load(SeedTask(first.kind, first.preset, first.overrides, first.seeds[0], ""))
+    if first.kind == "train":
+        check_seeds(cfg, [s for t in tasks for s in t.seeds])
     single = [s for t in tasks for s in t.seeds if (out / f"seed_{s}" / "checkpoint.pt").exists()]
     if single:
         raise ValueError(
@@ -315,16 +316,25 @@ def check_group_tasks(tasks: list[GroupTask]) -> None:
 def run_group(task: GroupTask) -> list[dict[str, Any]]:
     """Train (or resume, or reuse) one group of seeds in this process; returns each seed's
     evaluation."""
+    from marlmerge.training.cotrain import cotrain_seeds
     from marlmerge.training.seeds import train_seeds
-    from marlmerge.training.train import load_train_config
 
     out = Path(task.out_dir)
-    cfg = load_train_config(task.preset, **dict(task.overrides))
+    cfg = _load(SeedTask(task.kind, task.preset, task.overrides, task.seeds[0], ""))
     resume = (out / task.checkpoint_name).exists()
-    results = train_seeds(
-        cfg, task.seeds, out, resume=resume, progress=False, checkpoint_name=task.checkpoint_name
+    run = train_seeds if task.kind == "train" else cotrain_seeds
+    results = run(
+        cfg,  # type: ignore[arg-type]
+        task.seeds,
+        out,
+        resume=resume,
+        progress=False,
+        checkpoint_name=task.checkpoint_name,
     )
     missing = [s for s, r in zip(task.seeds, results, strict=True) if r.evaluation is None]
     if missing:
         raise ValueError(f"{out}: seeds {missing} wrote no evaluation (eval_episodes = 0?)")
-    return [json.loads((out / f"seed_{s}" / "evaluation.json").read_text()) for s in task.seeds]
+    evaluations = [
+        json.loads((out / f"seed_{s}" / "evaluation.json").read_text()) for s in task.seeds
+    ]
+    return [ev.get("scripted", ev) for ev in evaluations]

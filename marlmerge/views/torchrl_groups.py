@@ -29,7 +29,8 @@ Root additions:
 
 The ego's episode is the world's episode: when the ego is done the world resets (the next ramp
 vehicle departs) and a new roster and opponent are drawn. Opponents are drawn per ego from
-`set_opponent_mix(n_opponents, scripted_fraction)` with the env's own seeded generator.
+`set_opponent_mix(n_opponents, scripted_fraction)` with the env's own seeded generator; an env of
+several seeds (`group_seeds`) draws each seed's worlds' opponents with that seed's env's generator.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Composite, Unbounded
 
 from marlmerge.config import ScenarioConfig
+from marlmerge.config.rules import check_count
 from marlmerge.sim import Roster
 from marlmerge.sim.observation import HIGHWAY_FEATURES
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
@@ -74,8 +76,22 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         seed: int | Sequence[int] = 0,
         overrides: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
+        group_seeds: Sequence[int] | None = None,
     ):
-        super().__init__(config, num_worlds, seed, overrides, device)
+        """group_seeds: S seeds in one env of S x `num_worlds` worlds (`seed` is then unused):
+        the worlds of seed s and their opponents run bit for bit as an env of `num_worlds`
+        worlds seeded with s (`BatchedMergeEnv`'s `world_groups`)."""
+        groups = None
+        if group_seeds is not None:
+            b = check_count("num_worlds", num_worlds)
+            seed = [
+                np.random.SeedSequence(int(s), spawn_key=(i,))
+                for s in group_seeds
+                for i in range(b)
+            ]
+            groups = np.repeat(np.arange(len(group_seeds)), b)
+            num_worlds = len(group_seeds) * b
+        super().__init__(config, num_worlds, seed, overrides, device, world_groups=groups)
         cfg = self.cfg
         b, k = num_worlds, cfg.sim.n_highway_agents
         if k < 1:
@@ -128,14 +144,21 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         self.opponent = np.full(b, -1, dtype=np.int64)  # [B] -1 scripted
         self.n_opponents = 1
         self.scripted_fraction = 0.0
-        self.opponent_rng = np.random.default_rng(_opponent_seed(seed))
+        seeds = [seed] if group_seeds is None else list(group_seeds)
+        self.opponent_worlds = (
+            [np.ones(b, dtype=bool)]
+            if groups is None
+            else list(groups[None, :] == np.arange(len(seeds))[:, None])
+        )
+        """[B] masks: the worlds each opponent generator draws for (one generator per seed)."""
+        self.opponent_rngs = [np.random.default_rng(_opponent_seed(s)) for s in seeds]
 
     def sim_state(self) -> dict[str, Any]:
         state = super().sim_state()
         state.update(
             roster=self.roster.rows.copy(),
             opponent=self.opponent.copy(),
-            opponent_rng=self.opponent_rng.bit_generator.state,
+            opponent_rng=[r.bit_generator.state for r in self.opponent_rngs],
         )
         return state
 
@@ -143,7 +166,11 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         super().load_sim_state(saved)
         self.roster.rows[:] = saved["roster"]
         self.opponent[:] = saved["opponent"]
-        self.opponent_rng.bit_generator.state = saved["opponent_rng"]
+        states = saved["opponent_rng"]
+        for rng, state in zip(
+            self.opponent_rngs, states if isinstance(states, list) else [states], strict=True
+        ):
+            rng.bit_generator.state = state
 
     def set_opponent_mix(self, n_opponents: int, scripted_fraction: float) -> None:
         """From the next departure on, each ego meets scripted highway agents with probability
@@ -160,8 +187,10 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
 
     # ------------------------------------------------------------------ torchrl hooks
     def _set_seed(self, seed: int | None) -> None:
+        if len(self.opponent_rngs) > 1:
+            raise ValueError("an env of several seeds (group_seeds) is seeded when it is made")
         super()._set_seed(seed)
-        self.opponent_rng = np.random.default_rng(_opponent_seed(seed))
+        self.opponent_rngs = [np.random.default_rng(_opponent_seed(seed))]
         self._new_rosters(np.ones(self.num_worlds, dtype=bool))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
@@ -189,10 +218,12 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
             return
         fresh = self.core.make_roster(self.core.pick_roster(self.n_agents))
         self.roster.rows[:, rows] = fresh.rows[:, rows]
-        n = int(rows.sum())
-        scripted = self.opponent_rng.random(n) < self.scripted_fraction
-        pick = self.opponent_rng.integers(0, max(self.n_opponents, 1), n)
-        self.opponent[rows] = np.where(scripted, -1, pick)
+        for rng, worlds in zip(self.opponent_rngs, self.opponent_worlds, strict=True):
+            drawn = rows & worlds
+            n = int(drawn.sum())
+            scripted = rng.random(n) < self.scripted_fraction
+            pick = rng.integers(0, max(self.n_opponents, 1), n)
+            self.opponent[drawn] = np.where(scripted, -1, pick)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         b, k = self.num_worlds, self.n_agents
