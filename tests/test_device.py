@@ -1,6 +1,6 @@
-"""The device option (`device = "cuda"`): values checked, a missing device refused before any work,
-the acting networks aliased through a move, files written on the CPU, a run resumed on another
-device; on a machine with CUDA, whole runs there."""
+"""The device option (`device = "cuda"`) of training and co-training: values checked, a missing
+device refused before any work, the acting networks aliased through a move, files written on
+the CPU, a run resumed on another device; on a machine with CUDA, whole runs there."""
 
 import dataclasses
 import json
@@ -12,6 +12,12 @@ from test_train import TINY
 from marlmerge.config import ScenarioConfig
 from marlmerge.io import files
 from marlmerge.learners.loading import load_policy
+from marlmerge.training.cotrain import (
+    cotrain,
+    cotrain_seeds,
+    load_cotrain_config,
+    load_highway_policy,
+)
 from marlmerge.training.seeds import train_seeds
 from marlmerge.training.train import TrainConfig, load_train_config, make_learner, train
 
@@ -22,6 +28,8 @@ def test_device_values_are_checked(value):
         TrainConfig(device=value)
     with pytest.raises(ValueError, match="device"):
         load_train_config("paper", device=value)
+    with pytest.raises(ValueError, match=f"device must be .* got {value!r}"):
+        load_cotrain_config("adversary_ppo", device=value)
 
 
 def test_a_device_the_machine_lacks_is_refused_before_any_work(tmp_path, monkeypatch):
@@ -36,6 +44,13 @@ def test_a_device_the_machine_lacks_is_refused_before_any_work(tmp_path, monkeyp
     with pytest.raises(ValueError, match=r"device = 'cuda:3': this machine has 1 CUDA device"):
         train(dataclasses.replace(cfg, device="cuda:3"), tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists() and not (tmp_path / "seeds").exists()
+    co = load_cotrain_config("cotrain", device="cuda")
+    with pytest.raises(ValueError, match="device = 'cuda:3'"):
+        cotrain(dataclasses.replace(co, device="cuda:3"), tmp_path / "co", progress=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="device = 'cuda'"):
+        cotrain_seeds(co, [0, 1], tmp_path / "co", progress=False)
+    assert not (tmp_path / "co").exists()
 
 
 def _acting_and_loss_params(learner):
@@ -84,6 +99,30 @@ def test_a_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_path, capsys, 
         assert (tmp_path / "cut" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
 
 
+@pytest.mark.slow
+def test_a_cotraining_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_path, monkeypatch):
+    """The same for co-training, with PPO adversaries: the learners' device moves rollouts,
+    noise and minibatch orders through the same code on every device."""
+    from test_cotrain import TINY as CO_TINY
+
+    from marlmerge.cli import main
+
+    sets = {**CO_TINY, "rounds": 1, "highway_algorithm": "ppo"}
+    cfg = load_cotrain_config("cotrain", **sets)
+    cotrain(cfg, tmp_path / "whole", progress=False)
+    cotrain(cfg, tmp_path / "cut", progress=False, stop_after_sim_steps=6_700)
+    ckpt_path = tmp_path / "cut" / "checkpoint.pt"
+    ckpt = files.load(ckpt_path, "checkpoint")
+    ckpt["config"]["device"] = "cuda"
+    files.save(ckpt, ckpt_path)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    args = ["cotrain", "cotrain", "--out", str(tmp_path / "cut"), "--resume", "--no-progress"]
+    assert main(args) == 2  # the run's own device, which this machine lacks
+    assert main([*args, "--set", "device=cpu"]) == 0
+    for name in ("loss.csv", "egos.csv", "highway.csv", "evaluation.json"):
+        assert (tmp_path / "cut" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
 ON_CUDA = [("quadq", "compiled"), ("dqn", "fast"), ("td3", "fast")]
 
 
@@ -112,3 +151,24 @@ def test_vectorised_seeds_run_on_cuda(tmp_path):
         policy = load_policy(tmp_path / f"seed_{seed}" / "policy.pt")
         assert policy(torch.zeros(3, 7)).device.type == "cpu"
     assert _read(tmp_path / "seed_0" / "egos.csv") != _read(tmp_path / "seed_3" / "egos.csv")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("highway", ["quadq", "ppo"])
+def test_cotraining_seeds_run_on_cuda(tmp_path, highway):
+    """Co-training on the device, one seed and two in one process: policies written on the CPU,
+    evaluations made, the seeds different."""
+    from test_cotrain import TINY as CO_TINY
+
+    cfg = load_cotrain_config(
+        "cotrain", **{**CO_TINY, "rounds": 1, "highway_algorithm": highway, "device": "cuda"}
+    )
+    assert cotrain(cfg, tmp_path / "one", progress=False).evaluation is not None
+    results = cotrain_seeds(cfg, [0, 3], tmp_path / "two", progress=False)
+    assert all(r.evaluation is not None for r in results)
+    for folder in (tmp_path / "one", tmp_path / "two" / "seed_3"):
+        policy = load_policy(folder / "policy.pt")
+        assert policy(torch.zeros(3, 7)).device.type == "cpu"
+        assert load_highway_policy(folder)(torch.zeros(2, 4, 12)).device.type == "cpu"
+    egos = [(tmp_path / "two" / f"seed_{s}" / "egos.csv").read_text() for s in (0, 3)]
+    assert egos[0] != egos[1]

@@ -86,6 +86,10 @@ class RunConfig:
     """... on roads seeded from here on (training seeds are small numbers)."""
     eval_worlds: int = num(50, 1, 65_536)
     """Episodes evaluated in parallel (one seed per group of this many)."""
+    device: str = "cpu"
+    """Where the learners' networks, optimiser state and replays live: "cpu", "cuda", "cuda:N"
+    or "mps" (the simulator always runs on the CPU). The random draws (exploration noise,
+    minibatch indices) stay on the CPU generators, the same on every device."""
 
     def _check(self) -> None:
         check_values(self)
@@ -104,6 +108,10 @@ class RunConfig:
                     self.target_update_period % self.updates_per_call == 0,
                     f"updates_per_call ({self.updates_per_call}) must divide "
                     f"target_update_period ({self.target_update_period})",
+                ),
+                (
+                    re.fullmatch(DEVICE_PATTERN, self.device) is not None,
+                    f"device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {self.device!r}",
                 ),
             ]
         )
@@ -223,10 +231,6 @@ class TrainConfig(RunConfig):
     algorithm: str = "quadq"
     """Learner: "quadq" (the paper's quadratic Q), "dqn" (discrete levels, `[dqn]`) or "td3"
     (`[td3]`). All use the shared settings above."""
-    device: str = "cpu"
-    """Where the learner's networks, optimiser state and replay live: "cpu", "cuda", "cuda:N"
-    or "mps" (the simulator always runs on the CPU). The random draws (exploration noise,
-    minibatch indices) stay on the CPU generators, the same on every device."""
     shield: str = "none"
     """With "shield" or "shield-left": while collecting, the ego's commands (every merging
     vehicle's, under ramp flow) pass through gap acceptance's judgement (`GapShield`, the grid's
@@ -374,10 +378,6 @@ class TrainConfig(RunConfig):
                     not self.shield_drives or self.algorithm != "dqn",
                     f"shield = {self.shield!r} replaces the commands driven, which dqn's discrete "
                     "levels cannot store: use algorithm = 'quadq' or 'td3' (or shield_penalty > 0)",
-                ),
-                (
-                    re.fullmatch(DEVICE_PATTERN, self.device) is not None,
-                    f"device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {self.device!r}",
                 ),
                 (
                     not self.levels.seed_presets or self.levels.replay_fraction > 0.0,

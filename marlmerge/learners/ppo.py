@@ -91,6 +91,8 @@ class PPOHighwayLearner(Learner):
         epochs, minibatches: passes over each rollout and minibatches per pass.
         max_grad_norm: gradient clipping of each update.
         seed: the networks' initialisation; +1: minibatch order.
+        device: where the networks, optimiser state and rollout live (initialised on the CPU,
+            then moved; noise and minibatch order come from CPU generators).
     """
 
     algorithm = "ppo"
@@ -115,13 +117,15 @@ class PPOHighwayLearner(Learner):
         max_grad_norm: float,
         init_std: float,
         seed: int,
+        device: torch.device | str = "cpu",
     ) -> None:
         self.obs_dim, self.critic_dim, self.low, self.high = obs_dim, critic_dim, low, high
         self.gamma, self.lmbda = gamma, lmbda
         self.epochs, self.minibatches, self.max_grad_norm = epochs, minibatches, max_grad_norm
-        with seeded_init(seed):
-            self.actor_net = make_actor_net(obs_dim, hidden, init_std)
-            self.critic_net = make_mlp(critic_dim, 1, hidden, 2)
+        self.device = torch.device(device)
+        with seeded_init(seed):  # on the CPU, then moved: the same weights on every device
+            self.actor_net = make_actor_net(obs_dim, hidden, init_std).to(self.device)
+            self.critic_net = make_mlp(critic_dim, 1, hidden, 2).to(self.device)
         self.actor = ProbabilisticActor(
             TensorDictModule(self.actor_net, ["observation"], ["loc", "scale"]),
             in_keys=["loc", "scale"],
@@ -151,7 +155,8 @@ class PPOHighwayLearner(Learner):
         if generator is None:
             return {"action": self.greedy(obs)}
         loc, scale = self.actor_net(obs)
-        z = loc + scale * torch.randn(loc.shape, generator=generator)
+        noise = torch.randn(loc.shape, generator=generator)  # the CPU generator's draws
+        z = loc + scale * noise.to(loc.device)
         return {"action": squash(z, self.low, self.high), "z": z}
 
     @torch.no_grad()
@@ -190,8 +195,15 @@ class PPOHighwayLearner(Learner):
         [.., c], z (the pre-squash sample of `act`) and reward [.., 1]; valid, end (the
         trajectory ends after this step), terminated (it ends in an absorbing state) and
         cut_at_own_value (bootstrap from this step's own value, not the next observation's)
-        [B, T, K] bool.
+        [B, T, K] bool; on any device (the rows are the learner's).
         """
+        obs, critic_obs, z, reward, next_critic_obs, valid, end, terminated, cut_at_own_value = (
+            x.to(self.device)
+            for x in (
+                obs, critic_obs, z, reward, next_critic_obs, valid, end, terminated,
+                cut_at_own_value,
+            )
+        )  # fmt: skip
         value = self.value(critic_obs)  # [B, T, K, 1]
         next_value = torch.where(cut_at_own_value.unsqueeze(-1), value, self.value(next_critic_obs))
         end = end | ~valid
@@ -233,7 +245,7 @@ class PPOHighwayLearner(Learner):
         size = -(-n // self.minibatches)
         losses = []
         for _ in range(self.epochs):
-            order = torch.randperm(n, generator=self.order_gen)
+            order = torch.randperm(n, generator=self.order_gen).to(rows.device)
             for i in range(0, n, size):
                 losses.append(self.update(rows[order[i : i + size]]))
         replay.empty()

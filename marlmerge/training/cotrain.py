@@ -67,6 +67,7 @@ from torch import Tensor
 from marlmerge.config import to_dict
 from marlmerge.config.cotraining import PROFILES, CoTrainConfig
 from marlmerge.config.presets import load_cotrain_config, run_scenario
+from marlmerge.learners.common import resolve_device
 from marlmerge.learners.highway import load_highway_policy, save_highway_policy
 from marlmerge.sim.reward import INTERACTION_TERMS
 from marlmerge.training.checkpoint import open_checkpoint
@@ -167,6 +168,7 @@ def _run(
     """One run (`seeds` None: `cfg.seed`) or several in one process, checkpointed to
     `ckpt_path` in the run's folder."""
     run_scenario(cfg)  # an unknown scenario fails before anything is written
+    resolve_device(cfg.device)  # and a device this machine lacks
     out = ckpt_path.parent
     if seeds is not None and ckpt_path.exists() and not resume:
         raise ValueError(f"{out} already holds a run: pass --resume to continue it")

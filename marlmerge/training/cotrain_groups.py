@@ -113,11 +113,12 @@ def make_group(
         seed=seed,
         sample_generator=sample_gen,
         init_weights=init_weights,
+        device=cfg.device,
     )
     return LearningGroup(
         name,
         learner,
-        make_replay(cfg.replay_capacity, sample_gen),
+        make_replay(cfg.replay_capacity, sample_gen, cfg.device),
         noise_gen=torch.Generator().manual_seed(seed + 1),
         sample_gen=sample_gen,
         updates_per_sim_step=updates_per_sim_step,
@@ -148,13 +149,14 @@ def make_ppo_group(cfg: CoTrainConfig, obs_dim: int, ego_dim: int, k: int, seed:
         max_grad_norm=p.max_grad_norm,
         init_std=p.init_std,
         seed=seed,
+        device=cfg.device,
     )
     sample_gen = torch.Generator().manual_seed(seed + 2)
     rollout = cfg.num_worlds * cfg.env_steps_per_batch * k  # agent steps of one batch, at most
     return LearningGroup(
         GROUP,
         learner,
-        make_replay(rollout, sample_gen),
+        make_replay(rollout, sample_gen, cfg.device),
         noise_gen=torch.Generator().manual_seed(seed + 1),
         sample_gen=sample_gen,
         updates_per_sim_step=0.0,
@@ -246,8 +248,9 @@ def shape_with_ego_value(
     shaping [B, T, 1]."""
     nxt = batch.get("next")
     with torch.no_grad():
-        value = net.max_value(batch.get("observation"))  # [B, T, 1]
-        next_value = net.max_value(nxt.get("observation"))  # [B, T, 1]
+        dev = next(net.parameters()).device  # the learner's; the batch is on the CPU
+        value = net.max_value(batch.get("observation").to(dev)).cpu()  # [B, T, 1]
+        next_value = net.max_value(nxt.get("observation").to(dev)).cpu()  # [B, T, 1]
     not_term = (~nxt.get("terminated")).to(value.dtype)  # [B, T, 1]
     shaping = sign * weight * (value - gamma * not_term * next_value)  # [B, T, 1]
     reward = nxt.get((GROUP, "reward"))  # [B, T, K, 1]

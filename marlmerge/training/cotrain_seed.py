@@ -16,6 +16,7 @@ from torch import Tensor
 from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.config.cotraining import PROFILES, CoTrainConfig
 from marlmerge.io import files
+from marlmerge.learners.base import host_greedy
 from marlmerge.learners.highway import (
     OFFSET_BOUNDS_MPS2,
     HighwayPolicy,
@@ -295,7 +296,8 @@ class CoTrainSeed:
             net.load_state_dict(dict(self.egos_kept)[evaluation["selection"]["chosen_phase_index"]])
         save_ego_policy(out / "policy.pt", net, cfg, scen)
         if cfg.eval_episodes > 0:
-            args = (net.greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds)
+            greedy = host_greedy(self.ego.learner)  # the selected ego, on any device
+            args = (greedy, scen, cfg.eval_episodes, cfg.eval_seed, cfg.eval_worlds)
             evaluation["scripted"] = evaluate_policy(*args)
             if self.pool:
                 latest = self.snapshot(self.pool[-1])
