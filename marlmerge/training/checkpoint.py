@@ -56,13 +56,23 @@ def resume_config(
     return saved
 
 
-def open_checkpoint(cfg: Any, path: Path, version: int, done: tuple[str, int]) -> dict[str, Any]:
+def open_checkpoint(
+    cfg: Any, path: Path, version: int, done: tuple[str, int], seeds: list[int] | None = None
+) -> dict[str, Any]:
     """The checkpoint `resume` continues: the run of `cfg` (same config, else an error naming
     the keys) and, unless it had finished (`checkpoint[key] >= end` for `done = (key, end)`),
-    written in checkpoint layout `version`."""
+    written in checkpoint layout `version`. With `seeds`, a run of several seeds in one
+    process (`--seeds`): the run of those seeds (its config is the first seed's)."""
     if not path.exists():
         raise ValueError(f"--resume: no checkpoint at {path}")
     ckpt = files.load(path, "checkpoint")
+    if seeds is not None:
+        if ckpt.get("seeds") != seeds:
+            raise ValueError(
+                f"{path}: the run {cfg.KIND}s seeds {ckpt.get('seeds')}, not {seeds}; resume it "
+                f"with --seeds {','.join(map(str, ckpt.get('seeds') or []))}"
+            )
+        cfg = dataclasses.replace(cfg, seed=seeds[0])
     saved = to_dict(saved_config(type(cfg), ckpt["config"]))
     differ = [k for k, v in to_dict(cfg).items() if saved.get(k) != v and k not in PLACE_KEYS]
     if differ:

@@ -172,7 +172,8 @@ def _run(
     out = ckpt_path.parent
     if seeds is not None and ckpt_path.exists() and not resume:
         raise ValueError(f"{out} already holds a run: pass --resume to continue it")
-    ckpt = _open_checkpoint(cfg, seeds, ckpt_path) if resume else None
+    done = ("phase_index", len(cfg.phases()))
+    ckpt = open_checkpoint(cfg, ckpt_path, CHECKPOINT_VERSION, done, seeds) if resume else None
     if ckpt is not None and ckpt["phase_index"] >= len(cfg.phases()):
         finished = _finished(ckpt, seeds, out)
         if finished is not None:
@@ -192,18 +193,6 @@ def _run(
         CoTrainResult(s.out, s.total, s.egos, wall, len(s.pool), s.finish() if done else None)
         for s in run.seeds
     ]
-
-
-def _open_checkpoint(cfg: CoTrainConfig, seeds: list[int] | None, path: Path) -> dict[str, Any]:
-    """The checkpoint `resume` continues (of the same seeds, for several)."""
-    first = cfg if seeds is None else dataclasses.replace(cfg, seed=seeds[0])
-    ckpt = open_checkpoint(first, path, CHECKPOINT_VERSION, ("phase_index", len(cfg.phases())))
-    if seeds is not None and ckpt["seeds"] != seeds:
-        raise ValueError(
-            f"{path}: the run co-trains seeds {ckpt['seeds']}, not {seeds}; resume it with "
-            f"--seeds {','.join(map(str, ckpt['seeds']))}"
-        )
-    return ckpt
 
 
 def _finished(

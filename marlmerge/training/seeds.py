@@ -246,20 +246,6 @@ def open_run(
     return run
 
 
-def load_seeds_checkpoint(cfg: TrainConfig, seeds: list[int], path: Path) -> dict[str, Any]:
-    """The checkpoint `--resume` continues: same config (the first seed's) and same seeds."""
-    ckpt = open_checkpoint(
-        dataclasses.replace(cfg, seed=seeds[0]), path, CHECKPOINT_VERSION,
-        ("sim_steps", cfg.total_sim_steps),
-    )  # fmt: skip
-    if ckpt["seeds"] != seeds:
-        raise ValueError(
-            f"{path}: the run trains seeds {ckpt['seeds']}, not {seeds}; resume it with "
-            f"--seeds {','.join(map(str, ckpt['seeds']))}"
-        )
-    return ckpt
-
-
 def train_seeds(
     cfg: TrainConfig,
     seeds: list[int],
@@ -278,84 +264,110 @@ def train_seeds(
     ckpt_path = out / checkpoint_name
     if ckpt_path.exists() and not resume:
         raise ValueError(f"{out} already holds a run: pass --resume to continue it")
-    ckpt = load_seeds_checkpoint(cfg, seeds, ckpt_path) if resume else None
+    done = ("sim_steps", cfg.total_sim_steps)
+    ckpt = open_checkpoint(cfg, ckpt_path, CHECKPOINT_VERSION, done, seeds) if resume else None
     set_torch_threads(cfg.threads)
     if ckpt is not None and ckpt["sim_steps"] >= cfg.total_sim_steps:
         return [
             _finished_result(seed_dir(out, s), st)
             for s, st in zip(seeds, ckpt["runs"], strict=True)
         ]
+    run = SeedsRun(cfg, seeds, ckpt_path, ckpt, progress, stop_after_sim_steps)
+    collector = run.collector(resumed=ckpt is not None)
+    t_start = time.perf_counter()
+    feeds = [(run.groups, functools.partial(seed_rows, run.runs, cfg.num_worlds))]
+    times = run_loop(collector, feeds, run.k, run.on_batch, run.after_updates)  # type: ignore[arg-type]
+    wall = time.perf_counter() - t_start
+    if run.bar is not None:
+        run.bar.close()
+    return [finish_run(r, wall, times, run.groups.compile_time_s, run.k) for r in run.runs]
 
-    replays = [make_levels(dataclasses.replace(cfg, seed=s)) for s in seeds]
-    env = make_seed_env(cfg, seeds, replays if replays[0] is not None else None)  # type: ignore[arg-type]
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    saved = ckpt["runs"] if ckpt is not None else [None] * len(seeds)
-    runs = [
-        open_run(cfg, s, out, obs_dim, st, lv)
-        for s, st, lv in zip(seeds, saved, replays, strict=True)
-    ]
-    if ckpt is not None:
-        env.load_sim_state(ckpt["env"])
-    k, b = env.cfg.sim.action_repeat, cfg.num_worlds
-    groups = SeedGroups([r.ego for r in runs])
-    done_steps = runs[0].sim_steps
-    collector = make_collector(
-        env,
-        SeedsPolicy(groups.groups, b, make_train_shield(cfg, env.cfg)),
-        len(seeds) * b * cfg.env_steps_per_batch,
-        len(seeds) * (cfg.total_sim_steps - done_steps),
-        k,
-        resumed_groups=groups.groups if ckpt else [],
-    )
-    bar = progress_bar(cfg.total_sim_steps, done_steps, progress)
-    every = cfg.checkpoint_every_sim_steps
-    next_ckpt = (done_steps // every + 1) * every
 
-    def checkpoint() -> None:
+class SeedsRun:
+    """The process of `train_seeds`: one env of every seed's worlds, each seed's `SeedRun`,
+    their learning groups as one feed, the progress bar and the checkpoints."""
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        seeds: list[int],
+        ckpt_path: Path,
+        ckpt: dict[str, Any] | None,
+        progress: bool,
+        stop_after_sim_steps: int | None,
+    ) -> None:
+        self.cfg, self.seeds, self.ckpt_path = cfg, seeds, ckpt_path
+        self.stop_after_sim_steps = stop_after_sim_steps
+        replays = [make_levels(dataclasses.replace(cfg, seed=s)) for s in seeds]
+        self.env = make_seed_env(cfg, seeds, replays if replays[0] is not None else None)  # type: ignore[arg-type]
+        obs_dim = self.env.observation_spec["observation"].shape[-1]
+        saved = ckpt["runs"] if ckpt is not None else [None] * len(seeds)
+        self.runs = [
+            open_run(cfg, s, ckpt_path.parent, obs_dim, st, lv)
+            for s, st, lv in zip(seeds, saved, replays, strict=True)
+        ]
+        if ckpt is not None:
+            self.env.load_sim_state(ckpt["env"])
+        self.k = self.env.cfg.sim.action_repeat
+        self.groups = SeedGroups([r.ego for r in self.runs])
+        done_steps = self.runs[0].sim_steps
+        self.bar = progress_bar(cfg.total_sim_steps, done_steps, progress)
+        every = cfg.checkpoint_every_sim_steps
+        self.next_ckpt = (done_steps // every + 1) * every
+
+    def collector(self, resumed: bool) -> Any:
+        """The collector of the remaining steps: every seed's policy on its slice of the
+        worlds (through the run's shield)."""
+        cfg, n, b = self.cfg, len(self.seeds), self.cfg.num_worlds
+        return make_collector(
+            self.env,
+            SeedsPolicy(self.groups.groups, b, make_train_shield(cfg, self.env.cfg)),
+            n * b * cfg.env_steps_per_batch,
+            n * (cfg.total_sim_steps - self.runs[0].sim_steps),
+            self.k,
+            resumed_groups=self.groups.groups if resumed else [],
+        )
+
+    def checkpoint(self) -> None:
         states = []
-        for r in runs:
+        for r in self.runs:
             r.logs.flush()
             states.append(run_state(r.cfg, r.ego, r.sim_steps, r.logs, r.levels, r.selection))
-        payload = {**states[0], "seeds": seeds, "runs": states, "env": env.sim_state()}
-        save_checkpoint(ckpt_path, payload)
+        payload = {**states[0], "seeds": self.seeds, "runs": states, "env": self.env.sim_state()}
+        save_checkpoint(self.ckpt_path, payload)
 
-    def on_batch(batch: TensorDictBase, n_sim: int) -> None:
-        n_seed = n_sim // len(seeds)
-        for j, r in enumerate(runs):
+    def on_batch(self, batch: TensorDictBase, n_sim: int) -> None:
+        """Each seed counts its slice of the batch [S x B, T], logs its egos and scores its
+        levels."""
+        b, n_seed = self.cfg.num_worlds, n_sim // len(self.seeds)
+        for j, r in enumerate(self.runs):
             r.sim_steps += n_seed
             r.ego.explore_step = r.sim_steps
             part = batch[j * b : (j + 1) * b]
-            rows = r.logs.tracker.update(part, r.sim_steps, k, r.logs.egos)
+            rows = r.logs.tracker.update(part, r.sim_steps, self.k, r.logs.egos)
             r.recent = (r.recent + rows)[-200:]
             if r.levels is not None:
                 score_levels(r.levels, part)
-        recent = [row for r in runs for row in r.recent]
-        show_progress(bar, n_seed, sum(r.logs.tracker.egos for r in runs), recent)
+        recent = [row for r in self.runs for row in r.recent]
+        show_progress(self.bar, n_seed, sum(r.logs.tracker.egos for r in self.runs), recent)
 
-    def after_updates() -> bool:
-        nonlocal next_ckpt
-        steps = runs[0].sim_steps
-        for r in runs:
+    def after_updates(self) -> bool:
+        """Checkpoint selection, the policies at the end, the checkpoints; True: stop."""
+        cfg, steps = self.cfg, self.runs[0].sim_steps
+        for r in self.runs:
             if r.selection is not None and r.selection.due(steps):
                 r.selection.consider(steps, r.ego.learner)
             if steps >= cfg.total_sim_steps:
-                save_policies(r.out, r.cfg, env.cfg, r.ego.learner, r.selection)
-        if steps >= next_ckpt or steps >= cfg.total_sim_steps:
-            checkpoint()
-            next_ckpt += every
-        if stop_after_sim_steps is not None and steps >= stop_after_sim_steps:
-            for r in runs:
+                save_policies(r.out, r.cfg, self.env.cfg, r.ego.learner, r.selection)
+        if steps >= self.next_ckpt or steps >= cfg.total_sim_steps:
+            self.checkpoint()
+            self.next_ckpt += cfg.checkpoint_every_sim_steps
+        stop = self.stop_after_sim_steps
+        if stop is not None and steps >= stop:
+            for r in self.runs:
                 r.logs.flush()
             return True
         return False
-
-    t_start = time.perf_counter()
-    feeds = [(groups, functools.partial(seed_rows, runs, b))]
-    times = run_loop(collector, feeds, k, on_batch, after_updates)  # type: ignore[arg-type]
-    wall = time.perf_counter() - t_start
-    if bar is not None:
-        bar.close()
-    return [finish_run(r, wall, times, groups.compile_time_s, k) for r in runs]
 
 
 def _finished_result(folder: Path, state: dict[str, Any]) -> TrainResult:
