@@ -13,11 +13,13 @@ seeds one process each, side by side in one run.
 
 `wall_s` is the schedule (every phase); `with_evaluation_s` adds the ego selection and the
 evaluations, which run seed after seed. The default budget is a small one of the `cotrain`
-recipe (`BUDGET`); `--set` changes any key:
+recipe (`BUDGET`); `--own-budget` keeps the recipe's; `--set` changes any key:
 
     python benchmarks/bench_cotrain.py --seeds 4
     python benchmarks/bench_cotrain.py --seeds 4 --modes one,vec,workers,sweep
     python benchmarks/bench_cotrain.py --seeds 4 --set highway_algorithm=ppo
+    python benchmarks/bench_cotrain.py --preset adversary --own-budget --seeds 3 \
+        --set ego_init=runs/paper/policy.pt
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import platform
 import tempfile
 import time
 
-from bench_train import timed_sweep  # the same sweep, timed
+from bench_train import seed_ratios, timed_sweep  # the same ratios and sweep
 
 from marlmerge.cli import _parse_sets
 from marlmerge.training.cotrain import CoTrainConfig, cotrain_seeds, load_cotrain_config
@@ -67,9 +69,10 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=4, help="S: seeds of the `vec` and `sweep` runs")
     p.add_argument("--workers", type=int, default=2, help="processes of the `sweep` run")
     p.add_argument("--modes", default="one,vec", help="of one, vec, workers, sweep")
+    p.add_argument("--own-budget", action="store_true", help="the recipe's schedule, not BUDGET")
     args = p.parse_args()
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    sets = {**BUDGET, **_parse_sets(args.set)}
+    sets = {**({} if args.own_budget else BUDGET), **_parse_sets(args.set)}
     cfg = load_cotrain_config(args.preset, **sets)
     modes = args.modes.split(",")
     if unknown := set(modes) - {"one", "vec", "workers", "sweep"}:
@@ -88,9 +91,7 @@ def main() -> None:
     if "vec" in modes:
         out["vectorized"] = seeds_run(cfg, seeds)
     if "one" in modes and "vec" in modes:
-        ratio = out["vectorized"]["wall_s"] / out["one_seed"]["wall_s"]
-        out["seeds_wall_ratio"] = ratio
-        out["sweep_throughput_ratio"] = len(seeds) / ratio
+        out.update(seed_ratios(out["one_seed"], out["vectorized"], len(seeds)))
     if "workers" in modes:
         out["workers"] = timed_sweep(args.preset, sets, seeds, args.workers, vectorized=True)
     if "sweep" in modes:

@@ -91,6 +91,13 @@ def seeds_run(cfg: TrainConfig, seeds: list[int]) -> dict:
     }
 
 
+def seed_ratios(one: dict, vec: dict, n_seeds: int) -> dict:
+    """S seeds in one process against one seed: `seeds_wall_ratio` (their loops' wall times)
+    and `sweep_throughput_ratio` (S / that)."""
+    ratio = vec["wall_s"] / one["wall_s"]
+    return {"seeds_wall_ratio": ratio, "sweep_throughput_ratio": n_seeds / ratio}
+
+
 def timed_sweep(preset: str, sets: dict, seeds: list[int], workers: int, vectorized: bool) -> dict:
     from marlmerge.training.sweep import sweep
 
@@ -165,9 +172,7 @@ def main() -> None:
     if "vec" in modes:
         out["vectorized"] = seeds_run(cfg, seeds)
     if "one" in modes and "vec" in modes:
-        ratio = out["vectorized"]["wall_s"] / out["one_seed"]["wall_s"]
-        out["seeds_wall_ratio"] = ratio
-        out["sweep_throughput_ratio"] = args.seeds / ratio
+        out.update(seed_ratios(out["one_seed"], out["vectorized"], args.seeds))
     if "workers" in modes:
         out["workers"] = timed_sweep(args.preset, sets, seeds, args.workers, vectorized=True)
         if "one" in modes:

@@ -76,6 +76,13 @@ def test_acting_network_stays_the_losss_parameters_through_a_move(algorithm):
     assert all(p.dtype == torch.float64 and p.data_ptr() in ptrs for p in net.parameters())
 
 
+def _recorded_on_cuda(path):
+    """Make a checkpoint say its run was trained on CUDA."""
+    ckpt = files.load(path, "checkpoint")
+    ckpt["config"]["device"] = "cuda"
+    files.save(ckpt, path)
+
+
 @pytest.mark.slow
 def test_a_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_path, capsys, monkeypatch):
     """Checkpoints and policies hold CPU tensors whatever the device, and `device` is the one
@@ -86,10 +93,7 @@ def test_a_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_path, capsys, 
     cfg = TrainConfig(**TINY)
     train(cfg, tmp_path / "whole", progress=False)
     train(cfg, tmp_path / "cut", progress=False, stop_after_sim_steps=3_000)
-    ckpt_path = tmp_path / "cut" / "checkpoint.pt"
-    ckpt = files.load(ckpt_path, "checkpoint")
-    ckpt["config"]["device"] = "cuda"
-    files.save(ckpt, ckpt_path)
+    _recorded_on_cuda(tmp_path / "cut" / "checkpoint.pt")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     args = ["train", "--out", str(tmp_path / "cut"), "--resume", "--no-progress"]
     assert main(args) == 2  # without --set: the run's own device, which this machine lacks
@@ -111,10 +115,7 @@ def test_a_cotraining_run_from_an_accelerator_resumes_on_the_cpu_exactly(tmp_pat
     cfg = load_cotrain_config("cotrain", **sets)
     cotrain(cfg, tmp_path / "whole", progress=False)
     cotrain(cfg, tmp_path / "cut", progress=False, stop_after_sim_steps=6_700)
-    ckpt_path = tmp_path / "cut" / "checkpoint.pt"
-    ckpt = files.load(ckpt_path, "checkpoint")
-    ckpt["config"]["device"] = "cuda"
-    files.save(ckpt, ckpt_path)
+    _recorded_on_cuda(tmp_path / "cut" / "checkpoint.pt")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     args = ["cotrain", "cotrain", "--out", str(tmp_path / "cut"), "--resume", "--no-progress"]
     assert main(args) == 2  # the run's own device, which this machine lacks
