@@ -68,8 +68,9 @@ def open_checkpoint(
     ckpt = files.load(path, "checkpoint")
     if seeds is not None:
         if ckpt.get("seeds") != seeds:
+            verb = "co-trains" if cfg.KIND == "cotrain" else "trains"
             raise ValueError(
-                f"{path}: the run {cfg.KIND}s seeds {ckpt.get('seeds')}, not {seeds}; resume it "
+                f"{path}: the run {verb} seeds {ckpt.get('seeds')}, not {seeds}; resume it "
                 f"with --seeds {','.join(map(str, ckpt.get('seeds') or []))}"
             )
         cfg = dataclasses.replace(cfg, seed=seeds[0])
