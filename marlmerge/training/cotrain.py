@@ -82,7 +82,7 @@ from marlmerge.training.loop import (
     save_checkpoint,
     set_torch_threads,
 )
-from marlmerge.training.seeds import CHECKPOINT_NAME, SeedGroups
+from marlmerge.training.seeds import CHECKPOINT_NAME, SeedGroups, check_seed_list, seed_dir
 from marlmerge.views.torchrl_groups import MultiAgentMergeEnv
 
 CHECKPOINT_VERSION = 3
@@ -151,8 +151,7 @@ def cotrain_seeds(
     s is bit for bit `cotrain` with `seed = s`, written to `OUT/seed_S` as that run writes its
     folder. One checkpoint, `OUT/<checkpoint_name>`, holds them all; `resume` with the same
     seeds continues every one exactly."""
-    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
+    check_seed_list(seeds)
     out = Path(out_dir)
     return _run(cfg, list(seeds), out / checkpoint_name, resume, progress, stop_after_sim_steps)
 
@@ -188,9 +187,9 @@ def _run(
             run.end_phase()
     run.close()
     wall = time.perf_counter() - t0
-    done = run.phase_index >= len(run.phases)
+    ended = run.phase_index >= len(run.phases)  # not stopped by stop_after_sim_steps
     return [
-        CoTrainResult(s.out, s.total, s.egos, wall, len(s.pool), s.finish() if done else None)
+        CoTrainResult(s.out, s.total, s.egos, wall, len(s.pool), s.finish() if ended else None)
         for s in run.seeds
     ]
 
@@ -216,11 +215,6 @@ def _finished(
         )  # fmt: skip
         for f, st in zip(folders, states, strict=True)
     ]
-
-
-def seed_dir(out: Path, seed: int) -> Path:
-    """The run folder of one seed of `cotrain_seeds` (as `marlmerge sweep` names it)."""
-    return out / f"seed_{seed}"
 
 
 class CoTrainRun:

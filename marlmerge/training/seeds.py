@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
@@ -69,7 +68,7 @@ from marlmerge.training.train import (
     score_levels,
     show_progress,
 )
-from marlmerge.views.torchrl_env import BatchedMergeEnv
+from marlmerge.views.torchrl_env import BatchedMergeEnv, seed_worlds
 
 CHECKPOINT_NAME = "seeds_checkpoint.pt"
 
@@ -79,12 +78,17 @@ def seed_dir(out: Path, seed: int) -> Path:
     return out / f"seed_{seed}"
 
 
+def check_seed_list(seeds: list[int]) -> None:
+    """The seeds of one process (`train --seeds`, `cotrain --seeds`): distinct, none negative."""
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
+
+
 def check_seeds(cfg: TrainConfig, seeds: list[int]) -> None:
     """Refuse what a vectorised run cannot do (and a device this machine lacks), before any
     work."""
     resolve_device(cfg.device)
-    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise ValueError(f"--seeds: need distinct seeds >= 0, got {seeds}")
+    check_seed_list(seeds)
     scen = check_levels(cfg)
     make_train_shield(cfg, scen)
     if scen.ramp.flowing:
@@ -119,14 +123,14 @@ def make_seed_env(
     seed's worlds are one draw group (`marlmerge.sim.core.draw_groups`): they run bit for bit
     as the single run's env, whatever the other seeds' worlds do."""
     b = cfg.num_worlds
-    world_seeds = [np.random.SeedSequence(s, spawn_key=(i,)) for s in seeds for i in range(b)]
+    world_seeds, groups = seed_worlds(seeds, b)
     source = None if levels is None else SeedLevels(levels, b)
     return BatchedMergeEnv(
         cfg.scenario,
         num_worlds=len(seeds) * b,
-        seed=world_seeds,
+        seed=world_seeds,  # type: ignore[arg-type]
         scenario_source=source,  # type: ignore[arg-type]
-        world_groups=np.repeat(np.arange(len(seeds)), b),
+        world_groups=groups,
     )
 
 

@@ -109,7 +109,12 @@ def run_seed(task: SeedTask) -> dict[str, Any]:
             cotrain(cfg, out, resume=resume, progress=False)
     if not done.exists():
         raise ValueError(f"{out}: the run wrote no evaluation.json (eval_episodes = 0?)")
-    evaluation = json.loads(done.read_text())
+    return scripted_evaluation(out)
+
+
+def scripted_evaluation(folder: Path) -> dict[str, Any]:
+    """A run folder's evaluation: a co-training run's against scripted traffic."""
+    evaluation = json.loads((folder / "evaluation.json").read_text())
     return evaluation.get("scripted", evaluation)
 
 
@@ -334,7 +339,4 @@ def run_group(task: GroupTask) -> list[dict[str, Any]]:
     missing = [s for s, r in zip(task.seeds, results, strict=True) if r.evaluation is None]
     if missing:
         raise ValueError(f"{out}: seeds {missing} wrote no evaluation (eval_episodes = 0?)")
-    evaluations = [
-        json.loads((out / f"seed_{s}" / "evaluation.json").read_text()) for s in task.seeds
-    ]
-    return [ev.get("scripted", ev) for ev in evaluations]
+    return [scripted_evaluation(out / f"seed_{s}") for s in task.seeds]

@@ -215,6 +215,18 @@ class BatchedMergeEnv(EnvBase):
         return out
 
 
+def seed_worlds(
+    seeds: Sequence[int], worlds_per_seed: int
+) -> tuple[list[np.random.SeedSequence], np.ndarray]:
+    """S runs in one env of S x B worlds: each world's seed (world i of seed s seeded as world i
+    of an env seeded with s, `marlmerge.sim.streams`) and its draw group [S x B] (each seed's
+    worlds one group, `marlmerge.sim.core.draw_groups`: they run bit for bit as that env's,
+    whatever the other seeds' worlds do)."""
+    b = worlds_per_seed
+    world_seeds = [np.random.SeedSequence(int(s), spawn_key=(i,)) for s in seeds for i in range(b)]
+    return world_seeds, np.repeat(np.arange(len(seeds)), b)
+
+
 def ego_action_spec(cfg: ScenarioConfig, b: int, device: Any) -> Bounded:
     """The ego's action spec [B, A] (`marlmerge.sim.action.action_bounds`)."""
     lo, hi = (torch.as_tensor(v).expand(b, len(v)) for v in action_bounds(cfg))

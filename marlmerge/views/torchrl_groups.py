@@ -49,7 +49,12 @@ from marlmerge.config.rules import check_count
 from marlmerge.sim import Roster
 from marlmerge.sim.observation import HIGHWAY_FEATURES
 from marlmerge.sim.reward import EGO_TERMS, LEARNED_HIGHWAY_TERMS, total_reward
-from marlmerge.views.torchrl_env import BatchedMergeEnv, ego_action_spec, required_key
+from marlmerge.views.torchrl_env import (
+    BatchedMergeEnv,
+    ego_action_spec,
+    required_key,
+    seed_worlds,
+)
 
 GROUP = "highway"
 
@@ -84,12 +89,7 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
         groups = None
         if group_seeds is not None:
             b = check_count("num_worlds", num_worlds)
-            seed = [
-                np.random.SeedSequence(int(s), spawn_key=(i,))
-                for s in group_seeds
-                for i in range(b)
-            ]
-            groups = np.repeat(np.arange(len(group_seeds)), b)
+            seed, groups = seed_worlds(group_seeds, b)  # type: ignore[assignment]
             num_worlds = len(group_seeds) * b
         super().__init__(config, num_worlds, seed, overrides, device, world_groups=groups)
         cfg = self.cfg
