@@ -63,6 +63,7 @@ def test_every_rate_in_the_readme_results_carries_its_interval():
             assert "[" in after or before == "within ", f"{m.group(0)} without interval: {cell}"
 
 
+@pytest.mark.slow  # a docs build
 def test_the_site_builds_strictly(tmp_path):
     pytest.importorskip("mkdocs", reason="the [docs] extra is not installed")
     out = subprocess.run(

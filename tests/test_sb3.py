@@ -1,6 +1,7 @@
 """Stable-Baselines3 on the batched core: its VecEnv conventions, and SAC training end to end."""
 
 import numpy as np
+import pytest
 import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
@@ -31,6 +32,7 @@ def test_vecenv_resets_in_the_step_and_keeps_the_terminal_observation():
     assert ended > 0
 
 
+@pytest.mark.slow  # a training run
 def test_sac_trains_a_few_hundred_steps_and_is_evaluated(tmp_path):
     env = MergeVecEnv(num_envs=4, seed=1)
     model = SAC("MlpPolicy", env, learning_starts=100, batch_size=32, seed=0, device="cpu")

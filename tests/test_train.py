@@ -121,9 +121,10 @@ def test_a_decaying_learning_rate_is_refused_where_it_has_no_schedule():
         TrainConfig(**{**TINY, "lr_end_fraction": 0.0})
 
 
-def test_flushed_updates_train_the_same_run_and_are_refused_elsewhere(tmp_path):
+@pytest.mark.slow  # two training runs
+def test_flushed_updates_train_the_same_run(tmp_path):
     """A tiny run with `flush_denormals` gives the plain run's bits (no subnormal arises in
-    it); the option is refused where there is no fast-path update to flush."""
+    it)."""
     cfg = TrainConfig(**{**TINY, "eval_episodes": 0})
     train(cfg, tmp_path / "plain", progress=False)
     flushed = TrainConfig(**{**TINY, "eval_episodes": 0, "flush_denormals": True})
@@ -137,6 +138,9 @@ def test_flushed_updates_train_the_same_run_and_are_refused_elsewhere(tmp_path):
     ]
     assert nets[0].keys() == nets[1].keys()
     assert all(torch.equal(nets[0][k], nets[1][k]) for k in nets[0])
+
+
+def test_flushed_updates_are_refused_where_there_is_no_fast_path_update():
     for bad in ({"update_path": "torchrl"}, {"algorithm": "dqn"}):
         with pytest.raises(ValueError, match="flush_denormals = true flushes"):
             TrainConfig(**{**TINY, "flush_denormals": True, **bad})

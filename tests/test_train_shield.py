@@ -156,6 +156,7 @@ def test_a_shield_that_only_teaches_leaves_the_commands_as_they_are():
     assert shielded(shield, env.reset()["observation"], acted) is acted
 
 
+@pytest.mark.slow  # a training run
 def test_a_run_with_a_judging_shield_is_evaluated_bare(tmp_path, capsys):
     values = {**TINY, "scenario": "grid_dense_adversarial", "shield": "shield"}
     values["shield_penalty"] = PENALTY

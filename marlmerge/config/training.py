@@ -305,95 +305,117 @@ class TrainConfig(RunConfig):
         self._check()
         require(
             [
-                (
-                    self.algorithm in ALGORITHMS,
-                    f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
-                ),
-                (
-                    self.shield in TRAIN_SHIELDS,
-                    f"shield must be one of {TRAIN_SHIELDS}, got {self.shield!r}",
-                ),
-                (
-                    self.shield_penalty == 0.0 or self.shield != "none",
-                    f"shield_penalty = {self.shield_penalty} needs a shield to judge the "
-                    "commands: set shield = 'shield' or 'shield-left'",
-                ),
-                (
-                    self.shield_imitation == 0.0 or self.shield != "none",
-                    f"shield_imitation = {self.shield_imitation} needs a shield to teach: set "
-                    "shield = 'shield' or 'shield-left'",
-                ),
-                (
-                    self.shield_imitation == 0.0
-                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
-                    f"shield_imitation = {self.shield_imitation} trains the quadratic Q's fast "
-                    f"path: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
-                    f"{self.algorithm!r} on {self.update_path!r}",
-                ),
-                (
-                    self.td_expectile == 0.5
-                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
-                    f"td_expectile = {self.td_expectile} weighs the quadratic Q's fast-path "
-                    "loss: algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
-                    f"{self.algorithm!r} on {self.update_path!r}",
-                ),
-                (
-                    self.lr_end_fraction == 1.0
-                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
-                    f"lr_end_fraction = {self.lr_end_fraction} schedules the quadratic Q's "
-                    "fast-path Adam: algorithm = 'quadq' with update_path 'fast' or 'compiled', "
-                    f"got {self.algorithm!r} on {self.update_path!r}",
-                ),
-                (
-                    not self.flush_denormals
-                    or (self.algorithm == "quadq" and self.update_path != "torchrl"),
-                    "flush_denormals = true flushes the quadratic Q's fast-path updates: "
-                    "algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
-                    f"{self.algorithm!r} on {self.update_path!r}",
-                ),
-                (
-                    self.peaks == 1 or (self.algorithm == "quadq" and self.shield_imitation == 0.0),
-                    f"peaks = {self.peaks} shapes the quadratic Q without imitation: algorithm "
-                    f"= 'quadq' and shield_imitation = 0, got {self.algorithm!r} and "
-                    f"{self.shield_imitation}",
-                ),
-                (
-                    self.peak_share == 0.0 or (self.peaks > 1 and self.update_path != "torchrl"),
-                    f"peak_share = {self.peak_share} weighs the losing pieces of a quadratic Q "
-                    f"of several peaks on the fast path: peaks > 1 with update_path 'fast' or "
-                    f"'compiled', got peaks = {self.peaks} on {self.update_path!r}",
-                ),
-                (
-                    self.peak_share_heads in PEAK_SHARE_HEADS,
-                    f"peak_share_heads must be one of {PEAK_SHARE_HEADS}, got "
-                    f"{self.peak_share_heads!r}",
-                ),
-                (
-                    not self.peak_bands or self.peak_share > 0.0,
-                    f"peak_bands = true keeps each piece in its band of commands: it needs "
-                    f"peak_share > 0 (a piece that never wins learns only through it), got "
-                    f"peak_share = {self.peak_share} with peaks = {self.peaks}",
-                ),
+                *self._shield_checks(),
+                *self._fast_path_checks(),
+                *self._peak_checks(),
                 (
                     not self.shield_drives or self.algorithm != "dqn",
                     f"shield = {self.shield!r} replaces the commands driven, which dqn's discrete "
                     "levels cannot store: use algorithm = 'quadq' or 'td3' (or shield_penalty > 0)",
                 ),
-                (
-                    not self.levels.seed_presets or self.levels.replay_fraction > 0.0,
-                    "levels.seed_presets needs levels.replay_fraction > 0 (nothing replays them)",
-                ),
-                (
-                    self.levels.score in LEVEL_SCORES,
-                    f"levels.score must be one of {LEVEL_SCORES}, got {self.levels.score!r}",
-                ),
-                (
-                    not self.levels.replay_roads or self.levels.replay_fraction > 0.0,
-                    "levels.replay_roads = true needs levels.replay_fraction > 0 (nothing "
-                    "replays the roads)",
-                ),
+                *self._level_checks(),
             ]
         )
+        self._check_named_presets()
+
+    def _shield_checks(self) -> list[tuple[bool, str]]:
+        return [
+            (
+                self.algorithm in ALGORITHMS,
+                f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}",
+            ),
+            (
+                self.shield in TRAIN_SHIELDS,
+                f"shield must be one of {TRAIN_SHIELDS}, got {self.shield!r}",
+            ),
+            (
+                self.shield_penalty == 0.0 or self.shield != "none",
+                f"shield_penalty = {self.shield_penalty} needs a shield to judge the "
+                "commands: set shield = 'shield' or 'shield-left'",
+            ),
+            (
+                self.shield_imitation == 0.0 or self.shield != "none",
+                f"shield_imitation = {self.shield_imitation} needs a shield to teach: set "
+                "shield = 'shield' or 'shield-left'",
+            ),
+        ]
+
+    def _fast_path_checks(self) -> list[tuple[bool, str]]:
+        """Options of the quadratic Q's fast path, refused on any other update."""
+        fast = self.algorithm == "quadq" and self.update_path != "torchrl"
+        needs = (
+            "algorithm = 'quadq' with update_path 'fast' or 'compiled', got "
+            f"{self.algorithm!r} on {self.update_path!r}"
+        )
+        return [
+            (
+                self.shield_imitation == 0.0 or fast,
+                f"shield_imitation = {self.shield_imitation} trains the quadratic Q's fast "
+                f"path: {needs}",
+            ),
+            (
+                self.td_expectile == 0.5 or fast,
+                f"td_expectile = {self.td_expectile} weighs the quadratic Q's fast-path "
+                f"loss: {needs}",
+            ),
+            (
+                self.lr_end_fraction == 1.0 or fast,
+                f"lr_end_fraction = {self.lr_end_fraction} schedules the quadratic Q's "
+                f"fast-path Adam: {needs}",
+            ),
+            (
+                not self.flush_denormals or fast,
+                f"flush_denormals = true flushes the quadratic Q's fast-path updates: {needs}",
+            ),
+        ]
+
+    def _peak_checks(self) -> list[tuple[bool, str]]:
+        return [
+            (
+                self.peaks == 1 or (self.algorithm == "quadq" and self.shield_imitation == 0.0),
+                f"peaks = {self.peaks} shapes the quadratic Q without imitation: algorithm "
+                f"= 'quadq' and shield_imitation = 0, got {self.algorithm!r} and "
+                f"{self.shield_imitation}",
+            ),
+            (
+                self.peak_share == 0.0 or (self.peaks > 1 and self.update_path != "torchrl"),
+                f"peak_share = {self.peak_share} weighs the losing pieces of a quadratic Q "
+                f"of several peaks on the fast path: peaks > 1 with update_path 'fast' or "
+                f"'compiled', got peaks = {self.peaks} on {self.update_path!r}",
+            ),
+            (
+                self.peak_share_heads in PEAK_SHARE_HEADS,
+                f"peak_share_heads must be one of {PEAK_SHARE_HEADS}, got "
+                f"{self.peak_share_heads!r}",
+            ),
+            (
+                not self.peak_bands or self.peak_share > 0.0,
+                f"peak_bands = true keeps each piece in its band of commands: it needs "
+                f"peak_share > 0 (a piece that never wins learns only through it), got "
+                f"peak_share = {self.peak_share} with peaks = {self.peaks}",
+            ),
+        ]
+
+    def _level_checks(self) -> list[tuple[bool, str]]:
+        return [
+            (
+                not self.levels.seed_presets or self.levels.replay_fraction > 0.0,
+                "levels.seed_presets needs levels.replay_fraction > 0 (nothing replays them)",
+            ),
+            (
+                self.levels.score in LEVEL_SCORES,
+                f"levels.score must be one of {LEVEL_SCORES}, got {self.levels.score!r}",
+            ),
+            (
+                not self.levels.replay_roads or self.levels.replay_fraction > 0.0,
+                "levels.replay_roads = true needs levels.replay_fraction > 0 (nothing "
+                "replays the roads)",
+            ),
+        ]
+
+    def _check_named_presets(self) -> None:
+        """The presets the run names (levels to seed, the scenario a policy is chosen on)
+        resolve, and the choice is not made on a held-out set."""
         from marlmerge.config.presets import resolve_config  # presets imports this module
 
         for i, preset in enumerate(self.levels.seed_presets):
@@ -401,20 +423,21 @@ class TrainConfig(RunConfig):
                 resolve_config(preset)
             except (ValueError, OSError) as e:
                 raise ValueError(f"levels.seed_presets[{i}] = {preset!r}: {e}") from None
-        if self.select.scenario:
-            try:
-                chosen_on = resolve_config(self.select.scenario).name
-            except (ValueError, OSError) as e:
-                raise ValueError(f"select.scenario = {self.select.scenario!r}: {e}") from None
-            require(
-                [
-                    (
-                        not chosen_on.startswith(("heldout", "lapses_heldout")),
-                        f"select.scenario = {self.select.scenario!r} is a held-out set "
-                        f"({chosen_on}): choosing a policy on it would tune on the test",
-                    )
-                ]
-            )
+        if not self.select.scenario:
+            return
+        try:
+            chosen_on = resolve_config(self.select.scenario).name
+        except (ValueError, OSError) as e:
+            raise ValueError(f"select.scenario = {self.select.scenario!r}: {e}") from None
+        require(
+            [
+                (
+                    not chosen_on.startswith(("heldout", "lapses_heldout")),
+                    f"select.scenario = {self.select.scenario!r} is a held-out set "
+                    f"({chosen_on}): choosing a policy on it would tune on the test",
+                )
+            ]
+        )
 
 
 FLAT_KEYS = {

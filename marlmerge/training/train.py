@@ -72,7 +72,13 @@ from marlmerge.training.ramp import (
     ramp_rows,
 )
 from marlmerge.training.select import Selection
-from marlmerge.training.shield import behind_shield, deployed_shield, make_train_shield, teach
+from marlmerge.training.shield import (
+    TrainShield,
+    behind_shield,
+    deployed_shield,
+    make_train_shield,
+    teach,
+)
 from marlmerge.views.torchrl_env import BatchedMergeEnv
 
 CHECKPOINT_VERSION = 3
@@ -237,6 +243,40 @@ class TrainResult:
     """`--resume` found the run finished, with its policy and evaluation: nothing was changed."""
 
 
+def check_run(cfg: TrainConfig) -> tuple[ScenarioConfig, TrainShield | None]:
+    """The run's scenario and training shield; whatever the run cannot do (an unknown scenario
+    or device, ramp flow it cannot train, a shape its scenario refuses) is refused here,
+    before anything is written."""
+    scen = run_scenario(cfg)
+    resolve_device(cfg.device)
+    if scen.ramp.flowing:
+        check_ramp_training(cfg, scen)
+    shield = make_train_shield(cfg, scen)
+    if cfg.peaks > 1 and scen.ego.chooses_join:
+        raise ValueError(
+            f"peaks = {cfg.peaks} shapes a Q of one action component; scenario "
+            f"{cfg.scenario!r} sets ego.join = {scen.ego.join!r}, a second one: use peaks = 1"
+        )
+    return scen, shield
+
+
+def restore(
+    ckpt: dict,
+    ego: LearningGroup,
+    env: Any,  # the ego's or the ramp flow's torchrl env
+    levels: LevelReplay | None,
+    selection: Selection | None,
+) -> int:
+    """Load a checkpoint's state into the run's parts; returns its simulator steps."""
+    ego.load_state_dict(ckpt["group"])
+    env.load_sim_state(ckpt["env"])
+    if levels is not None:
+        levels.load_state_dict(ckpt["levels"])
+    if selection is not None:
+        selection.load_state_dict(ckpt["select"])
+    return ckpt["sim_steps"]
+
+
 def train(
     cfg: TrainConfig,
     out_dir: str | Path,
@@ -247,17 +287,8 @@ def train(
     """Run (or resume) training; writes logs, checkpoints, the policy, the evaluation and the
     plots. `stop_after_sim_steps` ends the run abruptly at that step without checkpointing, as a
     kill would (used by the resume tests)."""
-    scen = run_scenario(cfg)  # an unknown scenario or device fails before anything is written
-    resolve_device(cfg.device)
+    scen, shield = check_run(cfg)
     flowing = scen.ramp.flowing  # ramp flow: one shared policy for every merging vehicle
-    if flowing:
-        check_ramp_training(cfg, scen)
-    shield = make_train_shield(cfg, scen)  # refused before anything is written
-    if cfg.peaks > 1 and scen.ego.chooses_join:
-        raise ValueError(
-            f"peaks = {cfg.peaks} shapes a Q of one action component; scenario "
-            f"{cfg.scenario!r} sets ego.join = {scen.ego.join!r}, a second one: use peaks = 1"
-        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -272,17 +303,9 @@ def train(
     scen, k = env.cfg, env.cfg.sim.action_repeat
     ego = make_ego_group(cfg, scen, len(env.core.agent_features) if flowing else env.core.obs_size)
     teach(ego.learner, shield)
-    sim_steps = 0
     levels = None if flowing else env.core.scenario_source
-    if ckpt is not None:
-        ego.load_state_dict(ckpt["group"])
-        env.load_sim_state(ckpt["env"])
-        sim_steps = ckpt["sim_steps"]
-        if levels is not None:
-            levels.load_state_dict(ckpt["levels"])
     selection = make_selection(cfg, scen)
-    if ckpt is not None and selection is not None:
-        selection.load_state_dict(ckpt["select"])
+    sim_steps = 0 if ckpt is None else restore(ckpt, ego, env, levels, selection)
     ego.explore_step = sim_steps
     logs = RunLogs.open(out, cfg, k * scen.sim.dt_s, ckpt, RAMP_AGENTS if flowing else None)
     ego.on_loss = lambda update, loss: logs.loss.write([update, sim_steps, loss])
