@@ -29,8 +29,10 @@ import time
 
 import torch
 
-from marlmerge.learners.quadq_fast import FastSpec, fast_chunk, fast_chunk_peaks, param_layout
+from marlmerge.learners.quadq_fast import fast_chunk
+from marlmerge.learners.quadq_flat import FastSpec, param_layout
 from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
+from marlmerge.learners.quadq_peaks import fast_chunk_peaks
 
 SPEC = FastSpec(obs_dim=7, hidden=64, a_min=1e-3, a_span=5 - 1e-3, low=-4.5, span=7.0,
                  gamma=0.95, lr=1e-3, beta1=0.9, beta2=0.999, eps=1e-8)  # fmt: skip

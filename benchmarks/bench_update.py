@@ -73,8 +73,9 @@ def _worker(threads: int, seconds: float, do_compile: bool) -> dict:
     os.environ.setdefault("RL_WARNINGS", "False")
     from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+    from marlmerge.learners.packed_replay import TransitionReplay
     from marlmerge.learners.quadq import PeriodicHardUpdate, QuadraticQLoss, QuadraticQNet
-    from marlmerge.learners.quadq_fast import FastQuadQUpdater, TransitionReplay
+    from marlmerge.learners.quadq_fast import FastQuadQUpdater
 
     g = torch.Generator().manual_seed(0)
     replay = TransitionReplay(CAPACITY, OBS_DIM)

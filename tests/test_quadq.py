@@ -10,6 +10,8 @@ from tensordict import TensorDict
 
 import marlmerge.learners.quadq as qq
 import marlmerge.learners.quadq_fast as qf
+from marlmerge.learners.packed_replay import TransitionReplay
+from marlmerge.learners.quadq_flat import TEACHER_CHANGED
 
 LOW, HIGH = qq.DEFAULT_ACTION_BOUNDS
 OBS_DIM = 7
@@ -56,8 +58,8 @@ def _perturb_target(loss: qq.QuadraticQLoss, g: torch.Generator) -> None:
             t.add_(0.05 * torch.randn(t.shape, generator=g))
 
 
-def _filled_replay(n: int, g: torch.Generator, join: bool = False) -> qf.TransitionReplay:
-    rep = qf.TransitionReplay(2 * n, OBS_DIM, action_dim=2 if join else 1)
+def _filled_replay(n: int, g: torch.Generator, join: bool = False) -> TransitionReplay:
+    rep = TransitionReplay(2 * n, OBS_DIM, action_dim=2 if join else 1)
     rep.extend_tensordict(_batch(n, g, join=join))
     return rep
 
@@ -512,7 +514,7 @@ def test_fast_updater_state_dict_roundtrip():
 
 
 def test_transition_replay_ring_and_layout():
-    rep = qf.TransitionReplay(5, OBS_DIM)
+    rep = TransitionReplay(5, OBS_DIM)
     td = _batch(7, _gen(20))
     rep.extend_tensordict(td[:3])
     assert len(rep) == 3
@@ -567,7 +569,7 @@ def test_the_imitation_term_matches_autograd_of_its_loss_and_adam():
     obs = rows[..., :OBS_DIM]  # [k, B, d]
     before = ref_loss.value_network.greedy(obs).detach()
     taught = _teacher(obs.reshape(-1, OBS_DIM), before.reshape(-1, 1)).view_as(before)
-    overruled = ((taught - before).abs() > qf.TEACHER_CHANGED).float()
+    overruled = ((taught - before).abs() > TEACHER_CHANGED).float()
     assert 0 < overruled.sum() < overruled.numel()
     opt = torch.optim.Adam(ref_loss.parameters(), lr=1e-3)
     td_losses = []

@@ -15,8 +15,10 @@ from test_train import TINY
 from marlmerge.cli import main
 from marlmerge.io import files
 from marlmerge.learners.common import sample_uniform
-from marlmerge.learners.quadq_fast import FastSpec, fast_chunk, fast_chunk_peaks
+from marlmerge.learners.quadq_fast import fast_chunk
+from marlmerge.learners.quadq_flat import FastSpec
 from marlmerge.learners.quadq_fused import fused_chunk, fused_chunk_peaks
+from marlmerge.learners.quadq_peaks import fast_chunk_peaks
 from marlmerge.training.loop import make_replay
 from marlmerge.training.seeds import CHECKPOINT_NAME, train_seeds
 from marlmerge.training.sweep import sweep

@@ -11,6 +11,7 @@
 
 from marlmerge.learners.dqn import DQNLearner, dqn_action_levels
 from marlmerge.learners.loading import ALGORITHMS, load_policy, make_learner
+from marlmerge.learners.packed_replay import TransitionReplay
 from marlmerge.learners.quadq import (
     DEFAULT_ACTION_BOUNDS,
     GaussianExploration,
@@ -19,7 +20,7 @@ from marlmerge.learners.quadq import (
     QuadraticQNet,
     noisy_greedy_action,
 )
-from marlmerge.learners.quadq_fast import FastQuadQUpdater, TransitionReplay
+from marlmerge.learners.quadq_fast import FastQuadQUpdater
 from marlmerge.learners.td3 import TD3Learner
 
 __all__ = [

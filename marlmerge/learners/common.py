@@ -29,7 +29,7 @@ from torchrl.modules import MLP
 
 from marlmerge.learners.base import Learner
 from marlmerge.learners.compiling import notice_if_slow
-from marlmerge.learners.quadq_fast import unpack_rows
+from marlmerge.learners.packed_replay import unpack_rows
 from marlmerge.sim.observation import EGO_FEATURES
 
 OBS_DIM = len(EGO_FEATURES)

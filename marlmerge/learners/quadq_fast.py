@@ -1,12 +1,13 @@
 """The quadratic-Q learner's engineered update path (the network and its loss: `quadq`).
 
-* :class:`TransitionReplay` - a packed tensor replay: one row per transition, so one
-  ``index_select`` gathers many minibatches.
-* `fast_chunk` / `fast_chunk_peaks` - k updates in one call: hand-written gradients of the
-  same loss as :class:`~marlmerge.learners.quadq.QuadraticQLoss` (tested against it) and a
-  flat Adam (`adam_step`), on one flat parameter vector (`param_layout`, `unflatten`).
-* :class:`FastQuadQUpdater` - steps them, optionally ``torch.compile``-d, updating the loss
-  module's parameters in place; S seeds in one call: `marlmerge.learners.quadq_fused`.
+* `fast_chunk` - k updates in one call: hand-written gradients of the same loss as
+  :class:`~marlmerge.learners.quadq.QuadraticQLoss` (tested against it) and a flat Adam, on
+  one flat parameter vector (`marlmerge.learners.quadq_flat`); a Q of several pieces:
+  `marlmerge.learners.quadq_peaks.fast_chunk_peaks`.
+* :class:`FastQuadQUpdater` - samples minibatches from a packed replay
+  (`marlmerge.learners.packed_replay`) and steps them, optionally ``torch.compile``-d,
+  updating the loss module's parameters in place; S seeds in one call:
+  `marlmerge.learners.quadq_fused`.
 
 All randomness comes from caller-supplied ``torch.Generator`` objects.
 """
@@ -15,262 +16,35 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import replace
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict import TensorDictParams
 from torch import Tensor
 
 from marlmerge.config.training import PEAK_SHARE_HEADS
 from marlmerge.learners.compiling import call_update, own_code
+from marlmerge.learners.packed_replay import TransitionReplay
 from marlmerge.learners.quadq import (
     QuadraticQLoss,
     QuadraticQNet,
     b_bounds,
-    band_bounds,
-    get_entry,
     head_rows,
-    n_heads,
-    peak_rows,
 )
+from marlmerge.learners.quadq_flat import (
+    TEACHER_CHANGED,
+    FastSpec,
+    Teacher,
+    adam_step,
+    flat_greedy,
+    param_layout,
+    td_weights,
+    unflatten,
+)
+from marlmerge.learners.quadq_peaks import fast_chunk_peaks
 
-__all__ = [
-    "FastQuadQUpdater",
-    "FastSpec",
-    "TransitionReplay",
-    "fast_chunk",
-    "fast_chunk_peaks",
-    "unpack_rows",
-]
-
-
-class TransitionReplay:
-    """Uniform ring-buffer replay of packed transitions (one float tensor, one row each).
-
-    Row layout (``obs_dim = d``): ``[obs (d) | action | reward | terminated | next_obs (d)]``,
-    so one ``index_select`` gathers a whole batch of minibatches.
-
-    Args:
-        capacity: number of transitions kept (oldest overwritten first).
-        obs_dim: observation size.
-        action_dim: action components (the action takes that many columns).
-    """
-
-    def __init__(
-        self,
-        capacity: int,
-        obs_dim: int = 7,
-        *,
-        device: torch.device | str | None = None,
-        dtype: torch.dtype = torch.float32,
-        action_dim: int = 1,
-    ) -> None:
-        self.capacity = int(capacity)
-        self.obs_dim = int(obs_dim)
-        self.action_dim = int(action_dim)
-        self.row_dim = 2 * self.obs_dim + self.action_dim + 2
-        self.storage = torch.zeros(self.capacity, self.row_dim, device=device, dtype=dtype)
-        self._cursor = 0
-        self._size = 0
-
-    def __len__(self) -> int:
-        return self._size
-
-    def pack(
-        self, obs: Tensor, action: Tensor, reward: Tensor, terminated: Tensor, next_obs: Tensor
-    ) -> Tensor:
-        """[N, d], [N, 1], [N, 1], [N, 1] (bool), [N, d] -> packed rows [N, 2d + 3]."""
-        n = obs.shape[0]
-        dt = self.storage.dtype
-        return torch.cat(
-            [
-                obs.reshape(n, self.obs_dim).to(dt),
-                action.reshape(n, self.action_dim).to(dt),
-                reward.reshape(n, 1).to(dt),
-                terminated.reshape(n, 1).to(dt),
-                next_obs.reshape(n, self.obs_dim).to(dt),
-            ],
-            dim=-1,
-        )
-
-    def extend(
-        self, obs: Tensor, action: Tensor, reward: Tensor, terminated: Tensor, next_obs: Tensor
-    ) -> None:
-        """Append N transitions (leading dim N; see :meth:`pack` for shapes)."""
-        self.extend_packed(self.pack(obs, action, reward, terminated, next_obs))
-
-    def extend_tensordict(
-        self, td: TensorDictBase, keys: QuadraticQLoss._AcceptedKeys | None = None
-    ) -> None:
-        """Append a flat [N] tensordict laid out as :class:`QuadraticQLoss` reads it."""
-        k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
-        self.extend(
-            get_entry(td, k.observation),
-            get_entry(td, k.action),
-            get_entry(td, ("next", k.reward)),
-            get_entry(td, ("next", k.terminated)),
-            get_entry(td, ("next", k.observation)),
-        )
-
-    def extend_packed(self, rows: Tensor) -> None:
-        """Append packed rows [N, 2d + 3]; keeps the newest ``capacity`` if N is larger."""
-        rows = rows[-self.capacity :].to(self.storage.dtype)
-        n = rows.shape[0]
-        first = min(n, self.capacity - self._cursor)
-        self.storage[self._cursor : self._cursor + first] = rows[:first]
-        if n > first:
-            self.storage[: n - first] = rows[first:]
-        self._cursor = (self._cursor + n) % self.capacity
-        self._size = min(self._size + n, self.capacity)
-
-    def sample_indices(self, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
-        """Uniform indices with replacement, e.g. shape ``(k, 32)`` for k minibatches."""
-        if self._size == 0:
-            raise RuntimeError("cannot sample from an empty TransitionReplay")
-        return torch.randint(0, self._size, shape, generator=generator, device=self.storage.device)
-
-    def sample(self, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
-        """Packed rows ``[*shape, 2d + 3]``."""
-        idx = self.sample_indices(shape, generator)
-        return self.storage.index_select(0, idx.reshape(-1)).reshape(*shape, self.row_dim)
-
-    def to_tensordict(self, rows: Tensor, keys: QuadraticQLoss._AcceptedKeys | None = None):
-        """Packed rows [..., 2d + 3] -> TensorDict with the :class:`QuadraticQLoss` layout."""
-        return unpack_rows(rows, self.obs_dim, keys, self.action_dim)
-
-
-def unpack_rows(
-    rows: Tensor,
-    obs_dim: int,
-    keys: QuadraticQLoss._AcceptedKeys | None = None,
-    action_dim: int = 1,
-) -> TensorDict:
-    """Packed transitions ``[obs | action | reward | terminated | next_obs]`` [..., 2d + m + 2]
-    (m = `action_dim` action components) -> TensorDict with the :class:`QuadraticQLoss` layout
-    (torchrl conventions)."""
-    k = keys if keys is not None else QuadraticQLoss._AcceptedKeys()
-    d, m = obs_dim, action_dim
-    return TensorDict(
-        {
-            k.observation: rows[..., :d],
-            k.action: rows[..., d : d + m],
-            ("next", k.reward): rows[..., d + m : d + m + 1],
-            ("next", k.terminated): rows[..., d + m + 1 : d + m + 2] > 0.5,
-            ("next", k.observation): rows[..., d + m + 2 :],
-        },
-        batch_size=rows.shape[:-1],
-    )
-
-
-Teacher = Callable[[Tensor, Tensor], Tensor]
-"""obs [N, d], commands [N, m] (m/s^2) -> the teacher's commands [N, m]
-(`FastQuadQUpdater.imitate`)."""
-TEACHER_CHANGED = 1e-4
-"""A teacher's command further than this (m/s^2) from B(s) is imitated; nearer, it agrees."""
-
-
-@dataclass(frozen=True)
-class FastSpec:
-    """Constants baked into the fast update (Python floats, so compile treats them as such)."""
-
-    obs_dim: int
-    hidden: int
-    a_min: float
-    a_span: float
-    low: float
-    span: float
-    gamma: float
-    lr: float
-    beta1: float
-    beta2: float
-    eps: float
-    extra: tuple[tuple[float, float], ...] = ()
-    """(low, span) of each action component after the first (`QuadraticQNet.extra_bounds`)."""
-    imitation: float = 0.0
-    """Weight of the imitation term (`FastQuadQUpdater.imitate`); 0: none, the paper's loss."""
-    expectile: float = 0.5
-    """tau of the TD loss's expectile (`td_weights`); 0.5: the paper's squared error."""
-    peaks: int = 1
-    """K quadratic pieces (`QuadraticQNet.peaks`); 1: the paper's network."""
-    peak_bands: bool = False
-    """With K > 1 pieces: piece k's B in the k-th of K equal bands (`QuadraticQNet.peak_bands`)."""
-    peak_share: float = 0.0
-    """With K > 1 pieces: weight of each losing piece's own squared error to the same target
-    (`fast_chunk_peaks`); 0: only the envelope's error, the winning piece alone learns."""
-    peak_share_heads: str = "abc"
-    """The heads of a losing piece that `peak_share` reaches: "abc" all three, "c" its level."""
-
-    @property
-    def action_dim(self) -> int:
-        return 1 + len(self.extra)
-
-
-def param_layout(
-    obs_dim: int, hidden: int, action_dim: int = 1, peaks: int = 1
-) -> list[tuple[tuple[str, ...], tuple[int, ...]]]:
-    """Order and shapes of the :class:`QuadraticQNet` parameters in the flat buffers."""
-    n = n_heads(action_dim, peaks)
-    return [
-        (("hidden", "weight"), (n * hidden, obs_dim)),
-        (("hidden", "bias"), (n * hidden,)),
-        (("head_weight",), (n, hidden)),
-        (("head_bias",), (n,)),
-    ]
-
-
-def unflatten(
-    flat: Tensor, obs_dim: int, hidden: int, action_dim: int = 1, peaks: int = 1
-) -> list[Tensor]:
-    """Flat parameters [..., P] -> views w1 [..., nH, d], b1 [..., nH], w2 [..., n, H],
-    b2 [..., n] with n = `n_heads` (the leading dimensions, e.g. seeds, kept)."""
-    out, o = [], 0
-    lead = flat.shape[:-1]
-    for _, shape in param_layout(obs_dim, hidden, action_dim, peaks):
-        n = math.prod(shape)
-        out.append(flat[..., o : o + n].view(*lead, *shape))
-        o += n
-    return out
-
-
-def flat_greedy(spec: FastSpec, flat: Tensor, obs: Tensor) -> Tensor:
-    """B(s) [N, m] of the network with flat parameters ``flat`` [P] for obs [N, d] (as
-    `QuadraticQNet.greedy`)."""
-    m = spec.action_dim
-    w1, b1, w2, b2 = unflatten(flat, spec.obs_dim, spec.hidden, m)
-    rows_b = head_rows(m)[1]
-    h = torch.relu(torch.addmm(b1, obs, w1.t())).view(obs.shape[0], 2 * m + 1, spec.hidden)
-    z_b = (h * w2).sum(-1)[:, rows_b] + b2[rows_b]  # [N, m]
-    lows = (spec.low, *(lo for lo, _ in spec.extra))
-    low, span = b_bounds(lows, (spec.span, *(sp for _, sp in spec.extra)), obs)
-    return low + span * torch.sigmoid(z_b)
-
-
-def td_weights(spec: FastSpec, delta: Tensor) -> Tensor | None:
-    """The expectile loss's weight per TD error delta = Q(s, a) - y [...]: 2 (1 - tau) where
-    Q is above its target, 2 tau where below (tau = `spec.expectile`). Below 0.5 the fit
-    follows the worse outcomes more (Q is a low expectile of the return: risk averse). None
-    at 0.5, where every weight is 1: the paper's squared error, untouched."""
-    if spec.expectile == 0.5:
-        return None
-    return torch.where(delta > 0, 2.0 * (1.0 - spec.expectile), 2.0 * spec.expectile)
-
-
-def adam_step(
-    spec: FastSpec,
-    flat: Tensor,
-    exp_avg: Tensor,
-    exp_avg_sq: Tensor,
-    grad: Tensor,
-    scalars: Tensor,
-) -> None:
-    """One Adam step in place (torch.optim.Adam semantics: no weight decay, no amsgrad) on
-    ``flat``, ``exp_avg``, ``exp_avg_sq`` [..., P] from ``grad`` [..., P]; ``scalars`` [2] =
-    (lr / (1 - beta1^t), sqrt(1 - beta2^t)) of this update (`FastQuadQUpdater.adam_scalars`)."""
-    exp_avg.lerp_(grad, 1.0 - spec.beta1)
-    exp_avg_sq.mul_(spec.beta2).addcmul_(grad, grad, value=1.0 - spec.beta2)
-    denom = exp_avg_sq.sqrt() / scalars[1] + spec.eps
-    flat.sub_(scalars[0] * exp_avg / denom)
+__all__ = ["FastQuadQUpdater", "fast_chunk"]
 
 
 def fast_chunk(
@@ -351,103 +125,6 @@ def fast_chunk(
         grad = torch.cat([dw1_t.t().reshape(-1), db1, dw2.reshape(-1), db2])  # [P]
         adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
     return torch.stack(losses)
-
-
-def fast_chunk_peaks(
-    spec: FastSpec,
-    flat: Tensor,
-    target_flat: Tensor,
-    exp_avg: Tensor,
-    exp_avg_sq: Tensor,
-    adam_scalars: Tensor,
-    rows: Tensor,
-) -> Tensor:
-    """`fast_chunk` for a network of K = `spec.peaks` > 1 pieces (one action component):
-    Q(s, a) = max_k A_k (B_k - a)^2 + C_k, the target max_k C_target_k(s'). The TD error's
-    gradient reaches only the piece that is largest at the replayed action (the envelope's
-    derivative). With `spec.peak_share` = w > 0 the loss gains w (q_k(s, a) - y)^2 for every
-    other piece k, so a piece that never wins still learns and can come back into the envelope
-    (a piece that never wins otherwise never moves); with `spec.peak_share_heads` = "c" that
-    error reaches only the losing pieces' levels C_k, not their A and B. With
-    `spec.peak_bands` piece k's B lies in the k-th band of the range (`band_bounds`). Same
-    arguments and return as `fast_chunk` (no imitation); the losses returned stay the TD
-    losses."""
-    d = spec.obs_dim
-    y = peaks_targets(spec, target_flat, rows)  # [k, B]
-    params = unflatten(flat, d, spec.hidden, 1, spec.peaks)
-    losses = []
-    for i in range(rows.shape[0]):
-        loss, grad = peaks_update(spec, params, rows[i, :, :d], rows[i, :, d : d + 1], y[i])
-        losses.append(loss)
-        adam_step(spec, flat, exp_avg, exp_avg_sq, grad, adam_scalars[i])
-    return torch.stack(losses)
-
-
-def peaks_targets(spec: FastSpec, target_flat: Tensor, rows: Tensor) -> Tensor:
-    """The TD targets r + gamma (1 - terminal) max_k C_target_k(s') [k, B] of packed
-    minibatches rows [k, B, 2d + 3], from the target network (flat [P]): only its C heads are
-    evaluated."""
-    d, hd, kp = spec.obs_dim, spec.hidden, spec.peaks
-    k, bsz = rows.shape[:2]
-    rew = rows[..., d + 1]  # [k, B]
-    not_term = 1.0 - rows[..., d + 2]  # [k, B]
-    next_obs = rows[..., d + 3 :]  # [k, B, d]
-    tw1, tb1, tw2, tb2 = unflatten(target_flat, d, hd, 1, kp)
-    rows_c = peak_rows(kp)[2]
-    c_sl = slice(2 * kp * hd, 3 * kp * hd)
-    h_next = torch.relu(torch.matmul(next_obs, tw1[c_sl].t()) + tb1[c_sl])  # [k, B, K H]
-    h_next = h_next.view(k, bsz, kp, hd)
-    v_next = ((h_next * tw2[rows_c]).sum(-1) + tb2[rows_c]).amax(-1)  # [k, B]
-    return rew + spec.gamma * not_term * v_next
-
-
-def peaks_update(
-    spec: FastSpec, params: Sequence[Tensor], x: Tensor, act: Tensor, y: Tensor
-) -> tuple[Tensor, Tensor]:
-    """One update's TD loss (a scalar) and its gradient [P] for the K-piece network with
-    parameters `params` (w1, b1, w2, b2: `unflatten`'s views) on the minibatch x [B, d],
-    act [B, 1], targets y [B] (`peaks_targets`; `fast_chunk_peaks` applies Adam)."""
-    hd, kp = spec.hidden, spec.peaks
-    w1, b1, w2, b2 = params
-    b_low, b_span = spec.low, spec.span  # B_k = b_low + b_span * sigmoid(z_B_k)
-    if spec.peak_bands:
-        b_low, b_span = b_bounds(*band_bounds(spec.low, spec.span, kp), x)  # [K] each
-    n = 3 * kp
-    rows_a, rows_b, rows_c = peak_rows(kp)
-    bsz = x.shape[0]
-    pre = torch.addmm(b1, x, w1.t())  # [B, 3K H]
-    h = torch.relu(pre).view(bsz, n, hd)  # [B, 3K, H]
-    z = (h * w2).sum(-1) + b2  # [B, 3K]
-    s_a = torch.sigmoid(z[:, rows_a])  # [B, K]
-    s_b = torch.sigmoid(z[:, rows_b])  # [B, K]
-    big_a = -(spec.a_min + spec.a_span * s_a)  # [B, K]
-    diff = b_low + b_span * s_b - act  # B_k(s) - a, [B, K]
-    q_k = big_a * diff * diff + z[:, rows_c]  # [B, K]
-    q, best = q_k.max(-1)  # [B]
-    top = (torch.arange(kp, device=x.device) == best.unsqueeze(-1)).to(q.dtype)  # [B, K]
-    delta = q - y
-    w = td_weights(spec, delta)
-    wd = delta if w is None else w * delta
-    loss = (wd * delta).mean()
-    g = (wd * (2.0 / bsz)).unsqueeze(-1) * top  # dL/dq_k [B, K]
-    g_c = g  # dL/dC_k; g stays dL/dA_k, dL/dB_k
-    if spec.peak_share > 0.0:  # the losing pieces' own errors
-        g_c = g + (spec.peak_share * 2.0 / bsz) * (1.0 - top) * (q_k - y.unsqueeze(-1))
-        if spec.peak_share_heads == "abc":  # "c": they reach the levels only
-            g = g_c
-    dz = torch.cat(
-        [
-            g * diff * diff * (-spec.a_span) * s_a * (1.0 - s_a),
-            g * 2.0 * big_a * diff * b_span * s_b * (1.0 - s_b),
-            g_c,
-        ],
-        dim=-1,
-    )  # [B, 3K]
-    dw2 = (dz.unsqueeze(-1) * h).sum(0)  # [3K, H]
-    db2 = dz.sum(0)  # [3K]
-    dpre = torch.where(pre > 0, (dz.unsqueeze(-1) * w2).view(bsz, n * hd), 0.0)
-    dw1_t = torch.mm(x.t(), dpre)  # [d, 3K H]
-    return loss, torch.cat([dw1_t.t().reshape(-1), dpre.sum(0), dw2.reshape(-1), db2])  # [P]
 
 
 class FastQuadQUpdater:

@@ -32,15 +32,9 @@ from torch import Tensor
 
 from marlmerge.learners.compiling import call_update, own_code
 from marlmerge.learners.quadq import HEAD_A, HEAD_B, HEAD_C
-from marlmerge.learners.quadq_fast import (
-    FastQuadQUpdater,
-    FastSpec,
-    adam_step,
-    peaks_targets,
-    peaks_update,
-    td_weights,
-    unflatten,
-)
+from marlmerge.learners.quadq_fast import FastQuadQUpdater
+from marlmerge.learners.quadq_flat import FastSpec, adam_step, td_weights, unflatten
+from marlmerge.learners.quadq_peaks import peaks_targets, peaks_update
 
 
 def fused_chunk(

@@ -14,13 +14,15 @@ from torch import Tensor
 
 from marlmerge.learners.base import Learner
 from marlmerge.learners.common import sample_uniform
+from marlmerge.learners.packed_replay import unpack_rows
 from marlmerge.learners.quadq import (
     GaussianExploration,
     PeriodicHardUpdate,
     QuadraticQLoss,
     QuadraticQNet,
 )
-from marlmerge.learners.quadq_fast import FastQuadQUpdater, Teacher, unpack_rows
+from marlmerge.learners.quadq_fast import FastQuadQUpdater
+from marlmerge.learners.quadq_flat import Teacher
 
 
 class QuadQLearner(Learner):
@@ -40,11 +42,11 @@ class QuadQLearner(Learner):
         init_weights: start from these network weights (a trained policy's `net`) instead.
         device: where the networks and the optimiser state live (initialised on the CPU,
             then moved, so every device starts from the same weights).
-        expectile: tau of the TD loss (`marlmerge.learners.quadq_fast.td_weights`; fast paths only);
+        expectile: tau of the TD loss (`marlmerge.learners.quadq_flat.td_weights`; fast paths only);
             0.5: the paper's squared error.
         peaks: K quadratic pieces, Q the largest (`QuadraticQNet`); 1: the paper's network.
         peak_share: with several peaks, the weight of each losing piece's own TD error
-            (`marlmerge.learners.quadq_fast.fast_chunk_peaks`; fast paths only); 0: none.
+            (`marlmerge.learners.quadq_peaks.fast_chunk_peaks`; fast paths only); 0: none.
         peak_bands: with several peaks, piece k's B in the k-th band of the command range.
         peak_share_heads: the losing pieces' heads their share reaches ("abc" or "c").
         lr_schedule: (end fraction, updates): the learning rate falls linearly to lr x the

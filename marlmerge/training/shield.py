@@ -35,7 +35,7 @@ from torch import Tensor
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.training import JUDGING_KEYS, TrainConfig
 from marlmerge.learners.base import Learner
-from marlmerge.learners.quadq_fast import Teacher
+from marlmerge.learners.quadq_flat import Teacher
 from marlmerge.policies.gap_acceptance import GapShield, grid_shield
 
 SHIELD_COST = "shield_cost"
