@@ -132,10 +132,22 @@ class CoTrainConfig(RunConfig):
     harder than the drivers' comfortable `driver.comfort_brake_mps2` unless stopping behind its
     leader asks for it. It can still hang back, drive slowly or speed up into a gap. "none"
     (default): the action bounds only."""
+    fairness_worlds: float = num(0.0, 0.0, 0.5)
+    """Adversary phases: share of each seed's worlds whose ramp vehicle is driven by gap
+    acceptance (`marlmerge.policies.gap_acceptance`, the careful rule driver of the fairness
+    test) instead of the ego; the last round(share x `num_worlds`) worlds. In them the highway
+    agents' interaction terms (`InteractionConfig`: the ego's collisions, hard braking, stalls
+    and unsafe gaps they contributed to) count against them, `fairness_weight` x their size,
+    instead of for them: a failure that a careful rule driver also suffers is the adversary's,
+    not the ego's. The adversaries cannot tell the two drivers apart, so they learn what bites
+    a learned ego without biting the rule. 0 (default): every ramp vehicle is the ego."""
+    fairness_weight: float = num(1.0, 0.0, 1000.0)
+    """In `fairness_worlds`, each interaction term counts -`fairness_weight` x its size."""
     ppo: PpoConfig = field(default_factory=PpoConfig)
 
     def __post_init__(self) -> None:
         self._check()
+        self._check_fairness()
         if self.highway_algorithm not in HIGHWAY_ALGORITHMS:
             raise ValueError(
                 f"highway_algorithm must be one of {HIGHWAY_ALGORITHMS}, "
@@ -161,6 +173,31 @@ class CoTrainConfig(RunConfig):
             raise ValueError("the schedule is empty: every phase has 0 simulator steps")
         if not self.ego_init and self.ego_pretrain_sim_steps == 0 and self.adversary_sim_steps:
             raise ValueError("adversaries need a trained ego: set ego_init or pretrain")
+
+    def rule_worlds(self) -> int:
+        """How many of a seed's worlds `fairness_worlds` gives to gap acceptance."""
+        return round(self.fairness_worlds * self.num_worlds)
+
+    def _check_fairness(self) -> None:
+        if self.fairness_worlds == 0.0:
+            return
+        n = self.rule_worlds()
+        if n < 1:
+            raise ValueError(
+                f"fairness_worlds = {self.fairness_worlds} of num_worlds = {self.num_worlds} "
+                "gives no world to gap acceptance: raise it to at least "
+                f"{0.5 / self.num_worlds:.3g}, or set 0"
+            )
+        if self.profile != "adversarial":
+            raise ValueError(
+                f"fairness_worlds = {self.fairness_worlds} judges adversaries: it needs "
+                f"profile = 'adversarial', got {self.profile!r}"
+            )
+        if not any(kind == "adversary" for kind, _ in self.phases()):
+            raise ValueError(
+                f"fairness_worlds = {self.fairness_worlds} acts in adversary phases, and the "
+                "schedule has none (rounds = 0 or adversary_sim_steps = 0)"
+            )
 
     def phases(self) -> list[tuple[str, int]]:
         """The schedule: (phase kind, simulator steps) in order."""

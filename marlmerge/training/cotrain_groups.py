@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
@@ -28,6 +29,7 @@ from marlmerge.learners.highway import (
 from marlmerge.learners.ppo import PPOHighwayLearner, critic_observation, critic_size
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
 from marlmerge.learners.quadq_learner import QuadQLearner
+from marlmerge.sim.reward import INTERACTION_TERMS
 from marlmerge.training.loop import LearningGroup, make_replay
 from marlmerge.views.torchrl_groups import GROUP
 
@@ -256,6 +258,35 @@ def shape_with_ego_value(
     reward = nxt.get((GROUP, "reward"))  # [B, T, K, 1]
     nxt.set((GROUP, "reward"), reward + shaping.unsqueeze(-2).to(reward.dtype))
     return shaping
+
+
+def rule_acting(
+    ego: Callable[[Tensor], Tensor], rule: Callable[[np.ndarray], np.ndarray], n_rule: int
+) -> Callable[[Tensor], Tensor]:
+    """The ramp vehicles' commands of a seed's worlds: the ego's, except in the last `n_rule`
+    worlds, where the rule (gap acceptance) drives on the same observation
+    (`CoTrainConfig.fairness_worlds`)."""
+
+    def act(obs: Tensor) -> Tensor:  # obs [B, d] -> [B, m]
+        action = ego(obs)
+        ruled = torch.as_tensor(rule(obs[-n_rule:].cpu().numpy()), dtype=action.dtype)
+        return torch.cat([action[:-n_rule], ruled.to(action.device)])
+
+    return act
+
+
+def count_against_in_rule_worlds(batch: TensorDictBase, n_rule: int, weight: float) -> None:
+    """In the last `n_rule` worlds of a batch [B, T] (the rule driver's,
+    `CoTrainConfig.fairness_worlds`), make the highway group's interaction terms count
+    -`weight` x their size in its reward, in place: reward - (1 + weight) x their sum. The
+    terms are signed for an adversary (>= 0), so each becomes a penalty."""
+    nxt = batch.get("next")
+    terms = nxt.get((GROUP, "reward_terms"))
+    rule = nxt.get((GROUP, "reward"))[-n_rule:]  # [n, T, K, 1]
+    interaction = sum(terms.get(t)[-n_rule:] for t in INTERACTION_TERMS)  # [n, T, K, 1]
+    reward = nxt.get((GROUP, "reward")).clone()
+    reward[-n_rule:] = rule - (1.0 + weight) * interaction.to(rule.dtype)
+    nxt.set((GROUP, "reward"), reward)
 
 
 def ppo_highway_rows(batch: TensorDictBase, learner: PPOHighwayLearner, critic: str) -> Tensor:

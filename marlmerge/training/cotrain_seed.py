@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +26,13 @@ from marlmerge.learners.highway import (
     save_highway_policy,
 )
 from marlmerge.learners.ppo import PPOHighwayLearner
+from marlmerge.policies.gap_acceptance import GapAcceptancePolicy
 from marlmerge.sim import OUTCOME_NAMES
 from marlmerge.sim.observation import HIGHWAY_FEATURES, ego_obs_size
 from marlmerge.sim.reward import LEARNED_HIGHWAY_TERMS
 from marlmerge.training.cotrain_groups import (
     JointPolicy,
+    count_against_in_rule_worlds,
     ego_init_weights,
     explore,
     highway_bounds,
@@ -38,6 +41,7 @@ from marlmerge.training.cotrain_groups import (
     make_group,
     make_ppo_group,
     ppo_highway_rows,
+    rule_acting,
     save_ego_policy,
     shape_with_ego_value,
 )
@@ -66,6 +70,9 @@ HIGHWAY_LOG_FIELDS = (
     "background_collisions",
 )
 LOSS_LOG_FIELDS = ("group", "update", "sim_step", "loss")
+RULE_LOG_FIELDS = ("phase_index", "phase", "sim_step", "world", "opponent", "outcome", "time_s")
+"""`rule.csv`: the episodes of gap acceptance in the adversary phases' rule worlds
+(`CoTrainConfig.fairness_worlds`)."""
 
 
 class CoTrainSeed:
@@ -80,6 +87,7 @@ class CoTrainSeed:
         (out / "pool").mkdir(parents=True, exist_ok=True)
         files.write_text(out / "config.json", json.dumps(to_dict(cfg), indent=1))
         self.k = scen.sim.action_repeat
+        self.n_rule = cfg.rule_worlds()  # the last worlds: gap acceptance in adversary phases
         self.ego = make_group(
             cfg, "ego", ego_obs_size(scen), scen.ego.accel_bounds_mps2, cfg.seed * 1000 + 10,
             cfg.ego_updates_per_sim_step, ego_init_weights(cfg, scen),
@@ -106,6 +114,11 @@ class CoTrainSeed:
         self.ego_log = CsvLog(out / "egos.csv", EGO_LOG_FIELDS, rows[0])
         self.hw_log = CsvLog(out / "highway.csv", HIGHWAY_LOG_FIELDS, rows[1])
         self.loss_log = CsvLog(out / "loss.csv", LOSS_LOG_FIELDS, rows[2])
+        self.rule_log = (
+            CsvLog(out / "rule.csv", RULE_LOG_FIELDS, saved.get("rule_rows") if saved else None)
+            if self.n_rule
+            else None
+        )
         for group in (self.ego, self.hw):
             group.on_loss = functools.partial(self._log_loss, group.name)
         if cfg.ego_init and saved is None:
@@ -120,14 +133,17 @@ class CoTrainSeed:
         self.ep_sum[:] = saved["ep_sum"]
         self.ep_steps[:] = saved["ep_steps"]
 
+    def _logs(self) -> list[CsvLog]:
+        return [log for log in (self.ego_log, self.hw_log, self.loss_log, self.rule_log) if log]
+
     def _log_loss(self, group: str, update: int, loss: float) -> None:
         self.loss_log.write([group, update, self.total, loss])
 
     def state_dict(self) -> dict[str, Any]:
         """This seed's part of the checkpoint (its logs flushed)."""
-        for log in (self.ego_log, self.hw_log, self.loss_log):
+        for log in self._logs():
             log.flush()
-        return {
+        state = {
             "ego": self.ego.state_dict(),
             "highway": self.hw.state_dict(),
             "pool": self.pool,
@@ -142,6 +158,9 @@ class CoTrainSeed:
             "hw_rows": self.hw_log.rows,
             "loss_rows": self.loss_log.rows,
         }
+        if self.rule_log is not None:
+            state["rule_rows"] = self.rule_log.rows
+        return state
 
     def keep_ego(self, index: int) -> None:
         """The current ego becomes a candidate of the final selection (and `pool/ego_*.pt`)."""
@@ -188,7 +207,10 @@ class CoTrainSeed:
             opponents = [self.snapshot(s) for s in self.pool]
             feeds = [(ego, transition_rows)]
         ego.explore_step = hw.explore_step = self.phase_done
-        return JointPolicy(lambda obs: ego.act(obs)["action"], opponents), feeds
+        acting: Callable[[Tensor], Tensor] = lambda obs: ego.act(obs)["action"]  # noqa: E731
+        if kind == "adversary" and self.n_rule:
+            acting = rule_acting(acting, GapAcceptancePolicy(self.scen), self.n_rule)
+        return JointPolicy(acting, opponents), feeds
 
     def on_batch(
         self, kind: str, batch: TensorDictBase, sim_steps: int, background_collisions: int
@@ -198,6 +220,8 @@ class CoTrainSeed:
         self.phase_done += sim_steps
         self.total += sim_steps
         self.ego.explore_step = self.hw.explore_step = self.phase_done
+        if kind == "adversary" and self.n_rule:
+            count_against_in_rule_worlds(batch, self.n_rule, self.cfg.fairness_weight)
         if kind == "adversary" and self.cfg.ego_value_shaping > 0.0:
             shape_with_ego_value(
                 batch, self.ego.learner.net, self.cfg.gamma, self.cfg.ego_value_shaping,
@@ -231,24 +255,25 @@ class CoTrainSeed:
         outcome = nxt.get("outcome").reshape(batch.batch_size).numpy()
         opp = batch.get("opponent").reshape(batch.batch_size).numpy()
         b, t_len = batch.batch_size
+        first_rule = b - self.n_rule if kind == "adversary" else b  # the rule drives from here
         for t in range(t_len):
             self.ep_sum += rew[:, t]
             self.ep_steps += 1
+            sim_step = self.total - (t_len - 1 - t) * b * self.k
             for w in np.flatnonzero(done[:, t]):
-                self.ego_log.write(
-                    [
-                        self.egos,
-                        self.phase_index,
-                        kind,
-                        self.total - (t_len - 1 - t) * b * self.k,
-                        int(w),
-                        int(opp[w, t]),
-                        OUTCOME_NAMES[int(outcome[w, t])],
-                        round(float(self.ep_steps[w] * self.k * self.scen.sim.dt_s), 3),
-                        float(self.ep_sum[w]),
-                    ]
-                )
-                self.egos += 1
+                ended = [
+                    int(w),
+                    int(opp[w, t]),
+                    OUTCOME_NAMES[int(outcome[w, t])],
+                    round(float(self.ep_steps[w] * self.k * self.scen.sim.dt_s), 3),
+                ]
+                if w >= first_rule:
+                    assert self.rule_log is not None
+                    self.rule_log.write([self.phase_index, kind, sim_step, *ended])
+                else:
+                    total = float(self.ep_sum[w])
+                    self.ego_log.write([self.egos, self.phase_index, kind, sim_step, *ended, total])
+                    self.egos += 1
                 self.ep_sum[w] = 0.0
                 self.ep_steps[w] = 0
 
@@ -279,7 +304,7 @@ class CoTrainSeed:
         return highway_snapshot(self.cfg, self.scen, weights)
 
     def close(self) -> None:
-        for log in (self.ego_log, self.hw_log, self.loss_log):
+        for log in self._logs():
             log.close()
 
     # ---- the end -----------------------------------------------------------------------------
