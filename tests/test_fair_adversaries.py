@@ -1,6 +1,6 @@
 """Adversaries trained to be fair (`CoTrainConfig.fairness_worlds`): gap acceptance drives the
-ramp vehicle of some worlds in the adversary phases, and there the highway agents' interaction
-terms count against them."""
+ramp vehicle of some worlds in the adversary phases, and there the ramp vehicle's failures count
+against the highway agents."""
 
 import csv
 import dataclasses
@@ -14,7 +14,7 @@ from test_cotrain import _files, _tiny
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.cotraining import CoTrainConfig
 from marlmerge.policies.gap_acceptance import GapAcceptancePolicy
-from marlmerge.sim.reward import HIGHWAY_TERMS, INTERACTION_TERMS, LEARNED_HIGHWAY_TERMS
+from marlmerge.sim.reward import HIGHWAY_TERMS, LEARNED_HIGHWAY_TERMS
 from marlmerge.training.cotrain import cotrain, cotrain_seeds
 from marlmerge.training.cotrain_groups import count_against_in_rule_worlds, rule_acting
 from marlmerge.views.torchrl_groups import GROUP, MultiAgentMergeEnv
@@ -49,7 +49,7 @@ def test_the_rule_drives_the_last_worlds_on_their_own_observations():
     assert not torch.equal(acted[4:], torch.full((2, 1), 1.7))  # the rule's own commands
 
 
-def test_interaction_terms_count_against_the_adversaries_in_the_rule_worlds():
+def test_failure_terms_count_against_the_adversaries_in_the_rule_worlds():
     g = torch.Generator().manual_seed(0)
     b, t, k = 5, 3, 4
     terms = {name: torch.rand(b, t, k, 1, generator=g) for name in LEARNED_HIGHWAY_TERMS}
@@ -63,9 +63,10 @@ def test_interaction_terms_count_against_the_adversaries_in_the_rule_worlds():
     count_against_in_rule_worlds(batch, 2, 3.0)
     after = batch.get(("next", GROUP, "reward"))
     assert torch.equal(after[:3], reward[:3])  # the ego's worlds: untouched
+    failures = terms["ego_collision"] + terms["ego_stall"]
+    near = terms["ego_hard_brake"] + terms["ego_unsafe_gap"]
     own = sum(terms[n] for n in HIGHWAY_TERMS)
-    interaction = sum(terms[n] for n in INTERACTION_TERMS)
-    torch.testing.assert_close(after[3:], (own - 3.0 * interaction)[3:])
+    torch.testing.assert_close(after[3:], (own + near - 3.0 * failures)[3:])
     assert (after[3:] < reward[3:]).all()
 
 

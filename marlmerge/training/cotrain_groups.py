@@ -29,7 +29,6 @@ from marlmerge.learners.highway import (
 from marlmerge.learners.ppo import PPOHighwayLearner, critic_observation, critic_size
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
 from marlmerge.learners.quadq_learner import QuadQLearner
-from marlmerge.sim.reward import INTERACTION_TERMS
 from marlmerge.training.loop import LearningGroup, make_replay
 from marlmerge.views.torchrl_groups import GROUP
 
@@ -275,17 +274,24 @@ def rule_acting(
     return act
 
 
+RULE_FAILURE_TERMS = ("ego_collision", "ego_stall")
+"""The interaction terms of a ramp vehicle's failures (`InteractionConfig`), which count
+against the highway agents where the rule drives it; the near-failures (hard braking, unsafe
+gaps) still count for them there, as pressing a careful driver is what an adversary does."""
+
+
 def count_against_in_rule_worlds(batch: TensorDictBase, n_rule: int, weight: float) -> None:
     """In the last `n_rule` worlds of a batch [B, T] (the rule driver's,
-    `CoTrainConfig.fairness_worlds`), make the highway group's interaction terms count
-    -`weight` x their size in its reward, in place: reward - (1 + weight) x their sum. The
-    terms are signed for an adversary (>= 0), so each becomes a penalty."""
+    `CoTrainConfig.fairness_worlds`), make the highway group's failure terms
+    (`RULE_FAILURE_TERMS`) count -`weight` x their size in its reward, in place: reward -
+    (1 + weight) x their sum. The terms are signed for an adversary (>= 0), so each becomes a
+    penalty."""
     nxt = batch.get("next")
     terms = nxt.get((GROUP, "reward_terms"))
     rule = nxt.get((GROUP, "reward"))[-n_rule:]  # [n, T, K, 1]
-    interaction = sum(terms.get(t)[-n_rule:] for t in INTERACTION_TERMS)  # [n, T, K, 1]
+    failures = sum(terms.get(t)[-n_rule:] for t in RULE_FAILURE_TERMS)  # [n, T, K, 1]
     reward = nxt.get((GROUP, "reward")).clone()
-    reward[-n_rule:] = rule - (1.0 + weight) * interaction.to(rule.dtype)
+    reward[-n_rule:] = rule - (1.0 + weight) * failures.to(rule.dtype)
     nxt.set((GROUP, "reward"), reward)
 
 
