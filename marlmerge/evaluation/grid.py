@@ -34,7 +34,7 @@ import json
 import math
 import time
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -566,6 +566,43 @@ def _runs_table(rows: list[dict], policies: list[str], conds: list[str]) -> list
     return [*lines, ""] if len(lines) > 4 else []
 
 
+def _metric_sections(cells: dict) -> list[tuple[str, Callable[[str, str], str]]]:
+    """The summary's per-cell tables: (heading, the text of a policy's cell in a condition)."""
+
+    def mean(p: str, c: str, key: str, digits: int = 1) -> str:
+        return _fmt_mean(_cell(cells, p, c, key), digits)
+
+    def rate(p: str, c: str, key: str) -> str:
+        return _fmt_rate(_cell(cells, p, c, key))
+
+    return [
+        (
+            "Success % / collision %",
+            lambda p, c: f"{rate(p, c, 'success')} / {rate(p, c, 'collision')}",
+        ),
+        (
+            "Comfort: mean |acceleration| (m/s²) / max |jerk| (m/s³)",
+            lambda p, c: (
+                f"{mean(p, c, 'mean_abs_accel_mps2', 2)} / {mean(p, c, 'max_abs_jerk_mps3')}"
+            ),
+        ),
+        (
+            "Safety: time with TTC < 1.5 s (s) / min headway after merging (s) / "
+            "new follower's min acceleration (m/s²)",
+            lambda p, c: (
+                f"{mean(p, c, 'time_ttc_below_s', 2)} / "
+                f"{mean(p, c, 'min_headway_after_merge_s', 2)} / "
+                f"{mean(p, c, 'follower_min_accel_mps2')}"
+            ),
+        ),
+        (
+            "Collisions among mainline vehicles (not involving the ego), per episode",
+            lambda p, c: mean(p, c, "background_collisions", 3),
+        ),
+        ("Timeliness: time to merge (s)", lambda p, c: mean(p, c, "time_to_merge_s")),
+    ]
+
+
 def summary_markdown(
     rows: list[dict],
     policies: list[str],
@@ -592,62 +629,12 @@ def summary_markdown(
         *_overall_table(rows, cells, policies, conds),
         "",
         *_runs_table(rows, policies, conds),
-        "## Success % / collision %",
-        "",
-        *_table(
-            rows,
-            policies,
-            conds,
-            lambda p, c: (
-                f"{_fmt_rate(_cell(cells, p, c, 'success'))} / "
-                f"{_fmt_rate(_cell(cells, p, c, 'collision'))}"
-            ),
-        ),
-        "",
-        "## Comfort: mean |acceleration| (m/s²) / max |jerk| (m/s³)",
-        "",
-        *_table(
-            rows,
-            policies,
-            conds,
-            lambda p, c: (
-                f"{_fmt_mean(_cell(cells, p, c, 'mean_abs_accel_mps2'), 2)} / "
-                f"{_fmt_mean(_cell(cells, p, c, 'max_abs_jerk_mps3'))}"
-            ),
-        ),
-        "",
-        "## Safety: time with TTC < 1.5 s (s) / min headway after merging (s) / "
-        "new follower's min acceleration (m/s²)",
-        "",
-        *_table(
-            rows,
-            policies,
-            conds,
-            lambda p, c: (
-                f"{_fmt_mean(_cell(cells, p, c, 'time_ttc_below_s'), 2)} / "
-                f"{_fmt_mean(_cell(cells, p, c, 'min_headway_after_merge_s'), 2)} / "
-                f"{_fmt_mean(_cell(cells, p, c, 'follower_min_accel_mps2'))}"
-            ),
-        ),
-        "",
-        "## Collisions among mainline vehicles (not involving the ego), per episode",
-        "",
-        *_table(
-            rows,
-            policies,
-            conds,
-            lambda p, c: _fmt_mean(_cell(cells, p, c, "background_collisions"), 3),
-        ),
-        "",
-        "## Timeliness: time to merge (s)",
-        "",
-        *_table(
-            rows, policies, conds, lambda p, c: _fmt_mean(_cell(cells, p, c, "time_to_merge_s"))
-        ),
-        "",
-        "Every metric of every episode is in `episodes.csv`.",
-        "",
     ]
+    for i, (title, fmt) in enumerate(_metric_sections(cells)):
+        if i:
+            out.append("")
+        out += [f"## {title}", "", *_table(rows, policies, conds, fmt)]
+    out += ["", "Every metric of every episode is in `episodes.csv`.", ""]
     return "\n".join(out)
 
 
