@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.ramp_flow import run_ramp_flow
+from marlmerge.evaluation.ramp_flow import bounds_text, percent_bounds_text, run_ramp_flow
 
 RAMP_DEMANDS = (200.0, 400.0, 600.0, 800.0, 1000.0, 1200.0, 1400.0, 1600.0)
 MAINLINE_DEMANDS = (600.0, 1200.0, 1800.0)
@@ -71,8 +71,9 @@ def _table(rows: list[dict], args: argparse.Namespace) -> str:
         "",
         f"Written by `python benchmarks/ramp_capacity.py --hours {args.hours:g} --worlds "
         f"{args.worlds}` ({args.worlds} worlds x {args.hours:g} h per row after 300 s of "
-        "settling; merged flow with its 95 % interval over worlds, collisions per 1,000 merged "
-        "with Wilson's, each merged vehicle a trial). Lane changes and braking: "
+        "settling; merged flow, ramp delay and the lane-change and braking shares with their 95 % "
+        "intervals over worlds, collisions per 1,000 merged with Wilson's, each merged vehicle "
+        "a trial). Lane changes and braking: "
         "the mainline, one sample per vehicle and control step "
         "(`marlmerge.evaluation.merge_metrics`); braking around the merge; a cut-in's follower "
         "is watched for 3 s.",
@@ -89,11 +90,15 @@ def _table(rows: list[dict], args: argparse.Namespace) -> str:
         lines.append(
             f"| {r['variant']} | {r['mainline_demand_vph_per_lane']:g} | "
             f"{r['ramp_demand_vph']:g} | {r['merged_vph']:.0f} [{lo:.0f}, {hi:.0f}] | "
-            f"{r['ramp_delay_s']:.1f} | {r['ramp_max_queue']} | {r['ramp_collisions']} | "
+            f"{r['ramp_delay_s']:.1f}{bounds_text(r['ramp_delay_s_ci95'], 1)} | "
+            f"{r['ramp_max_queue']} | {r['ramp_collisions']} | "
             f"{r['ramp_collisions_per_1000']:.2f} [{c_lo:.2f}, {c_hi:.2f}] | "
             f"{r['mainline_speed_upstream_mps']:.1f} -> "
             f"{r['mainline_speed_merge_mps']:.1f} | {_percent(r['lane_change_shares']['entrance'])}"
-            f" | {100 * r['braking_over_b_share']:.2f} | {r['hardest_braking_mps2']:.1f} | "
+            f"{percent_bounds_text(r['lane_change_shares_ci95']['entrance'], 0)}"
+            f" | {100 * r['braking_over_b_share']:.2f}"
+            f"{percent_bounds_text(r['braking_over_b_share_ci95'], 2)} | "
+            f"{r['hardest_braking_mps2']:.1f} | "
             f"{r['cut_ins_braking_over_b']} of {r['cut_ins']} |"
         )
     return "\n".join(lines) + "\n"

@@ -8,7 +8,7 @@ import pytest
 from marlmerge.cli import main
 from marlmerge.config import ScenarioConfig
 from marlmerge.evaluation.grid import run_grid
-from marlmerge.evaluation.merge_metrics import SECTIONS, MergeTally
+from marlmerge.evaluation.merge_metrics import SECTIONS, MergeTally, ratio_interval
 from marlmerge.evaluation.ramp_flow import ramp_commands, run_ramp_flow
 from marlmerge.evaluation.registry import parse_policy, policy_from_spec
 from marlmerge.sim import TrafficCore
@@ -70,12 +70,31 @@ def test_braking_shares_are_shares_of_the_samples():
     assert 0.0 < braking["hardest_braking_mps2"] <= FLOW.vehicle.max_brake_mps2 + 1e-9
 
 
+def test_a_shares_interval_treats_each_world_as_one_cluster():
+    assert all(np.isnan(ratio_interval(np.array([3.0]), np.array([10.0]))))
+    assert all(np.isnan(ratio_interval(np.zeros(4), np.zeros(4))))
+    # the same share in every world: no spread between worlds, a point
+    assert ratio_interval(np.array([1.0, 2.0, 4.0]), np.array([10.0, 20.0, 40.0])) == (0.1, 0.1)
+    # by hand: shares 0.1 and 0.3 of 100 samples each; residuals -10 and +10 around 0.2
+    lo, hi = ratio_interval(np.array([10.0, 30.0]), np.array([100.0, 100.0]))
+    half = 1.96 * np.sqrt(2 / 1 * 200.0) / 200.0
+    assert (lo, hi) == pytest.approx((0.2 - half, 0.2 + half))
+    # many samples in few worlds are not many trials: wider than a binomial interval
+    binomial_half = 1.96 * np.sqrt(0.2 * 0.8 / 200.0)
+    assert hi - lo > 2 * binomial_half
+    assert ratio_interval(np.array([0.0, 9.0]), np.array([10.0, 10.0]))[0] == 0.0  # clipped
+
+
 def test_ramp_flow_reports_the_new_measures_as_strict_json():
     r = run_ramp_flow(FLOW, "gap", hours=0.05, worlds=2, seed=1, skip_s=60).to_dict()
     again = run_ramp_flow(FLOW, "gap", hours=0.05, worlds=2, seed=1, skip_s=60).to_dict()
     r.pop("wall_s"), again.pop("wall_s")
     assert r == again
-    assert set(r["lane_change_shares"]) == set(SECTIONS)
+    assert set(r["lane_change_shares"]) == set(SECTIONS) == set(r["lane_change_shares_ci95"])
+    lo, hi = r["braking_over_b_share_ci95"]
+    assert lo <= r["braking_over_b_share"] <= hi
+    lo, hi = r["lane_change_shares_ci95"]["entrance"]
+    assert lo <= r["lane_change_shares"]["entrance"] <= hi
     assert r["lane_changes_per_hour"] > 0
     json.dumps(r, allow_nan=False)
 

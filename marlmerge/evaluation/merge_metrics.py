@@ -24,6 +24,9 @@ Two of the merge's costs that merged flow and ramp delay do not show:
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 
 from marlmerge.config import ScenarioConfig
@@ -43,6 +46,20 @@ RECENT_MOVE_S = 1.0
 """A new leader that changed lanes this recently has moved in ahead (s)."""
 MOVES = ("cut_in", "join")
 """What moved in ahead: a mainline lane change, a ramp vehicle's join."""
+
+
+def ratio_interval(num: np.ndarray, den: np.ndarray) -> tuple[float, float]:
+    """95 % interval of the pooled share sum(num) / sum(den) of samples counted per world [B],
+    the worlds taken as independent clusters (the samples of one world are not: a vehicle
+    brakes over several control steps): the ratio estimator's linearised variance, normal
+    quantile, clipped to [0, 1]; (NaN, NaN) from fewer than two worlds or without samples."""
+    n, total = num.size, float(den.sum())
+    if n < 2 or total <= 0.0:
+        return (math.nan, math.nan)
+    share = float(num.sum()) / total
+    resid = num - share * den  # [B]
+    half = 1.96 * math.sqrt(n / (n - 1) * float((resid * resid).sum())) / total
+    return (max(share - half, 0.0), min(share + half, 1.0))
 
 
 def section_edges_m(cfg: ScenarioConfig) -> np.ndarray:
@@ -92,12 +109,20 @@ class MergeTally:
             k: (float(n) / total if total else None) for k, n in zip(SECTIONS, per, strict=True)
         }
 
-    def braking(self) -> dict[str, float]:
-        """Shares of the braking samples above b and `HARD_BRAKE_MPS2`, and the hardest (m/s^2)."""
+    def shares_ci95(self) -> dict[str, tuple[float, float]]:
+        """95 % intervals over worlds of `shares` (`ratio_interval`)."""
+        total = self.lane_changes.sum(axis=1)  # [B]
+        return {k: ratio_interval(self.lane_changes[:, i], total) for i, k in enumerate(SECTIONS)}
+
+    def braking(self) -> dict[str, Any]:
+        """Shares of the braking samples above b and `HARD_BRAKE_MPS2` with their 95 % intervals
+        over worlds, the hardest (m/s^2), and the braking after vehicles moved in ahead."""
         n = max(int(self.brake_samples.sum()), 1)
         return {
             "braking_over_b_share": float(self.over_comfort.sum()) / n,
+            "braking_over_b_share_ci95": ratio_interval(self.over_comfort, self.brake_samples),
             "braking_over_4_share": float(self.over_hard.sum()) / n,
+            "braking_over_4_share_ci95": ratio_interval(self.over_hard, self.brake_samples),
             "hardest_braking_mps2": self.hardest_mps2,
             **{f"{k}s": int(self.moves[i]) for i, k in enumerate(MOVES)},
             **{f"{k}s_braking_over_b": int(self.moves_braked[i]) for i, k in enumerate(MOVES)},

@@ -84,10 +84,14 @@ class RampFlowResult:
     """Mainline lane changes per hour and world."""
     lane_change_shares: dict[str, float | None]
     """Share of the lane changes in each road section (`merge_metrics.SECTIONS`)."""
+    lane_change_shares_ci95: dict[str, tuple[float, float]]
+    """... their 95 % intervals over worlds (`merge_metrics.ratio_interval`)."""
     braking_over_b_share: float
     """Share of the mainline's braking samples around the merge harder than b."""
+    braking_over_b_share_ci95: tuple[float, float]
     braking_over_4_share: float
     """... harder than 4 m/s^2."""
+    braking_over_4_share_ci95: tuple[float, float]
     hardest_braking_mps2: float
     cut_ins: int
     """Mainline vehicles a lane changer moved in ahead of, around the merge."""
@@ -131,7 +135,10 @@ def merge_line(row: dict[str, Any]) -> str:
     if row["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
         return f"no ramp vehicle merged, {row['ramp_collisions']} collisions"
     entrance = row["lane_change_shares"]["entrance"]
-    share = "-" if entrance is None else f"{100 * entrance:.0f} %"
+    entrance_ci = (row.get("lane_change_shares_ci95") or {}).get("entrance")
+    share = "-"
+    if entrance is not None:
+        share = f"{100 * entrance:.0f}{percent_bounds_text(entrance_ci, 0)} %"
     return (
         f"merged {row['merged_vph']:.0f}{bounds_text(row['merged_vph_ci95'], 0)} veh/h, ramp delay "
         f"{row['ramp_delay_s']:.1f}{bounds_text(row['ramp_delay_s_ci95'], 1)} s, longest queue "
@@ -141,7 +148,8 @@ def merge_line(row: dict[str, Any]) -> str:
         f"{row['mainline_speed_upstream_mps']:.1f} -> "
         f"{row['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
         f"{row['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), braking "
-        f"> b in {100 * row['braking_over_b_share']:.2f} % of samples (hardest "
+        f"> b in {100 * row['braking_over_b_share']:.2f}"
+        f"{percent_bounds_text(row.get('braking_over_b_share_ci95'), 2)} % of samples (hardest "
         f"{row['hardest_braking_mps2']:.1f} m/s^2); after {row['cut_ins']} cut-ins "
         f"{row['cut_ins_braking_over_b']} braked > b (hardest "
         f"{row['hardest_braking_after_cut_in_mps2']:.1f}), after {row['joins']} joins "
@@ -166,6 +174,13 @@ def _shield_part(row: dict[str, Any]) -> str:
     if share is None:
         return ""
     return f"; the shield changed {100 * share:.1f} % of {row['shield_judged']:,} ramp commands"
+
+
+def percent_bounds_text(bounds: Any, digits: int) -> str:
+    """`bounds_text` of the interval of a share, in %."""
+    if bounds is None or bounds[0] is None:
+        return ""
+    return bounds_text((100 * bounds[0], 100 * bounds[1]), digits)
 
 
 def _defined(value: object) -> object:
@@ -456,5 +471,6 @@ def _result(
         throughput_vph=float(d["exited"].mean() * per_hour),
         lane_changes_per_hour=float(tally.lane_changes.sum(axis=1).mean() * per_hour),
         lane_change_shares=tally.shares(),
+        lane_change_shares_ci95=tally.shares_ci95(),
         **tally.braking(),
     )
