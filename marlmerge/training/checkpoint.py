@@ -56,6 +56,12 @@ def resume_config(
     return saved
 
 
+def refuse_to_overwrite(ckpt_path: Path, resume: bool) -> None:
+    """A run of several seeds does not start over a checkpoint it was not asked to resume."""
+    if ckpt_path.exists() and not resume:
+        raise ValueError(f"{ckpt_path.parent} already holds a run: pass --resume to continue it")
+
+
 def open_checkpoint(
     cfg: Any, path: Path, version: int, done: tuple[str, int], seeds: list[int] | None = None
 ) -> dict[str, Any]:

@@ -70,7 +70,7 @@ from marlmerge.config.presets import load_cotrain_config, run_scenario
 from marlmerge.learners.common import resolve_device
 from marlmerge.learners.highway import load_highway_policy, save_highway_policy
 from marlmerge.sim.reward import INTERACTION_TERMS
-from marlmerge.training.checkpoint import open_checkpoint
+from marlmerge.training.checkpoint import open_checkpoint, refuse_to_overwrite
 from marlmerge.training.cotrain_groups import JointPolicy, shape_with_ego_value
 from marlmerge.training.cotrain_seed import CoTrainSeed
 from marlmerge.training.logs import progress_bar
@@ -169,8 +169,8 @@ def _run(
     run_scenario(cfg)  # an unknown scenario fails before anything is written
     resolve_device(cfg.device)  # and a device this machine lacks
     out = ckpt_path.parent
-    if seeds is not None and ckpt_path.exists() and not resume:
-        raise ValueError(f"{out} already holds a run: pass --resume to continue it")
+    if seeds is not None:
+        refuse_to_overwrite(ckpt_path, resume)
     done = ("phase_index", len(cfg.phases()))
     ckpt = open_checkpoint(cfg, ckpt_path, CHECKPOINT_VERSION, done, seeds) if resume else None
     if ckpt is not None and ckpt["phase_index"] >= len(cfg.phases()):

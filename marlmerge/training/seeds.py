@@ -40,7 +40,7 @@ from marlmerge.io import files
 from marlmerge.learners.common import resolve_device, sample_uniform
 from marlmerge.learners.quadq_fused import FusedQuadQUpdates
 from marlmerge.learners.quadq_learner import QuadQLearner
-from marlmerge.training.checkpoint import open_checkpoint, saved_config
+from marlmerge.training.checkpoint import open_checkpoint, refuse_to_overwrite, saved_config
 from marlmerge.training.levels import LevelReplay, SeedLevels
 from marlmerge.training.logs import progress_bar
 from marlmerge.training.loop import (
@@ -266,8 +266,7 @@ def train_seeds(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / checkpoint_name
-    if ckpt_path.exists() and not resume:
-        raise ValueError(f"{out} already holds a run: pass --resume to continue it")
+    refuse_to_overwrite(ckpt_path, resume)
     done = ("sim_steps", cfg.total_sim_steps)
     ckpt = open_checkpoint(cfg, ckpt_path, CHECKPOINT_VERSION, done, seeds) if resume else None
     set_torch_threads(cfg.threads)
