@@ -98,47 +98,9 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
             raise ValueError(f"MultiAgentMergeEnv needs sim.n_highway_agents >= 1, got {k}")
         self.n_agents = k
         self.highway_bounds_mps2 = cfg.sim.highway_agent_accel_bounds_mps2
-        dev = device
-        group_obs = Composite(
-            observation=Unbounded((b, k, len(HIGHWAY_FEATURES)), dtype=torch.float32, device=dev),
-            reward_terms=Composite(
-                {
-                    t: Unbounded((b, k, 1), dtype=torch.float32, device=dev)
-                    for t in LEARNED_HIGHWAY_TERMS
-                },
-                shape=(b, k),
-                device=dev,
-            ),
-            mask=Unbounded((b, k), dtype=torch.bool, device=dev),
-            left_road=Unbounded((b, k), dtype=torch.bool, device=dev),
-            exited=Unbounded((b, k), dtype=torch.bool, device=dev),
-            shape=(b, k),
-            device=dev,
-        )
+        group_obs, self.full_action_spec, self.full_reward_spec = _group_specs(cfg, b, k, device)
         self.observation_spec[GROUP] = group_obs
-        self.observation_spec["opponent"] = Unbounded((b, 1), dtype=torch.int64, device=dev)
-        self.full_action_spec = Composite(
-            action=ego_action_spec(cfg, b, dev),
-            highway=Composite(
-                action=Bounded(
-                    *self.highway_bounds_mps2, (b, k, 1), dtype=torch.float32, device=dev
-                ),
-                shape=(b, k),
-                device=dev,
-            ),
-            shape=(b,),
-            device=dev,
-        )
-        self.full_reward_spec = Composite(
-            reward=Unbounded((b, 1), dtype=torch.float32, device=dev),
-            highway=Composite(
-                reward=Unbounded((b, k, 1), dtype=torch.float32, device=dev),
-                shape=(b, k),
-                device=dev,
-            ),
-            shape=(b,),
-            device=dev,
-        )
+        self.observation_spec["opponent"] = Unbounded((b, 1), dtype=torch.int64, device=device)
         self.roster: Roster = self.core.make_roster(np.full((b, k), -1, dtype=np.int64))
         """[B, K] the highway agents of each world's current merge (the core keeps the mask)."""
         self.opponent = np.full(b, -1, dtype=np.int64)  # [B] -1 scripted
@@ -279,6 +241,52 @@ class MultiAgentMergeEnv(BatchedMergeEnv):
             batch_size=[b],
             device=dev,
         )
+
+
+def _group_specs(
+    cfg: ScenarioConfig, b: int, k: int, dev: str | torch.device
+) -> tuple[Composite, Composite, Composite]:
+    """The highway group's observation keys and the full action and reward specs of B worlds
+    with K highway agents each (the ego's keys are `BatchedMergeEnv`'s)."""
+
+    def column() -> Unbounded:  # [B, K, 1]
+        return Unbounded((b, k, 1), dtype=torch.float32, device=dev)
+
+    group_obs = Composite(
+        observation=Unbounded((b, k, len(HIGHWAY_FEATURES)), dtype=torch.float32, device=dev),
+        reward_terms=Composite(
+            {t: column() for t in LEARNED_HIGHWAY_TERMS},
+            shape=(b, k),
+            device=dev,
+        ),
+        mask=Unbounded((b, k), dtype=torch.bool, device=dev),
+        left_road=Unbounded((b, k), dtype=torch.bool, device=dev),
+        exited=Unbounded((b, k), dtype=torch.bool, device=dev),
+        shape=(b, k),
+        device=dev,
+    )
+    bounds = cfg.sim.highway_agent_accel_bounds_mps2
+    action = Composite(
+        action=ego_action_spec(cfg, b, dev),
+        highway=Composite(
+            action=Bounded(*bounds, (b, k, 1), dtype=torch.float32, device=dev),
+            shape=(b, k),
+            device=dev,
+        ),
+        shape=(b,),
+        device=dev,
+    )
+    reward = Composite(
+        reward=Unbounded((b, 1), dtype=torch.float32, device=dev),
+        highway=Composite(
+            reward=column(),
+            shape=(b, k),
+            device=dev,
+        ),
+        shape=(b,),
+        device=dev,
+    )
+    return group_obs, action, reward
 
 
 __all__ = ["GROUP", "MultiAgentMergeEnv", "EGO_TERMS"]
