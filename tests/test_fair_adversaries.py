@@ -1,6 +1,6 @@
 """Adversaries trained to be fair (`CoTrainConfig.fairness_worlds`): gap acceptance drives the
-ramp vehicle of some worlds in the adversary phases, and there the ramp vehicle's failures count
-against the highway agents."""
+ramp vehicle of some worlds in the adversary phases, and there its failures cost the whole
+highway group."""
 
 import csv
 import dataclasses
@@ -13,7 +13,9 @@ from test_cotrain import _files, _tiny
 
 from marlmerge.config import ScenarioConfig
 from marlmerge.config.cotraining import CoTrainConfig
+from marlmerge.config.scenario import InteractionConfig
 from marlmerge.policies.gap_acceptance import GapAcceptancePolicy
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
 from marlmerge.sim.reward import HIGHWAY_TERMS, LEARNED_HIGHWAY_TERMS
 from marlmerge.training.cotrain import cotrain, cotrain_seeds
 from marlmerge.training.cotrain_groups import count_against_in_rule_worlds, rule_acting
@@ -49,25 +51,40 @@ def test_the_rule_drives_the_last_worlds_on_their_own_observations():
     assert not torch.equal(acted[4:], torch.full((2, 1), 1.7))  # the rule's own commands
 
 
-def test_failure_terms_count_against_the_adversaries_in_the_rule_worlds():
+def test_the_rules_failures_are_the_whole_groups_in_its_worlds():
     g = torch.Generator().manual_seed(0)
     b, t, k = 5, 3, 4
     terms = {name: torch.rand(b, t, k, 1, generator=g) for name in LEARNED_HIGHWAY_TERMS}
     for name in HIGHWAY_TERMS:
         terms[name] = -terms[name]  # own driving terms are costs
     reward = sum(terms.values())
+    done = torch.zeros(b, t, 1, dtype=torch.bool)
+    outcome = torch.zeros(b, t, 1, dtype=torch.int64)
+    done[3, 1], outcome[3, 1] = True, OUTCOME_COLLISION  # the rule collides in world 3
+    done[4, 2], outcome[4, 2] = True, OUTCOME_TRUNCATED  # and runs out of time in world 4
+    done[0, 2], outcome[0, 2] = True, OUTCOME_COLLISION  # the ego's world: not the rule's
+    mask = torch.rand(b, t, k, generator=g) > 0.3
     batch = TensorDict(
-        {"next": {GROUP: {"reward": reward.clone(), "reward_terms": dict(terms)}}},
+        {
+            GROUP: {"mask": mask},
+            "next": {
+                GROUP: {"reward": reward.clone(), "reward_terms": dict(terms)},
+                "done": done,
+                "outcome": outcome,
+            },
+        },
         batch_size=[b, t],
     )
-    count_against_in_rule_worlds(batch, 2, 3.0)
+    inter = InteractionConfig()
+    count_against_in_rule_worlds(batch, 2, 3.0, inter)
     after = batch.get(("next", GROUP, "reward"))
     assert torch.equal(after[:3], reward[:3])  # the ego's worlds: untouched
-    failures = terms["ego_collision"] + terms["ego_stall"]
     near = terms["ego_hard_brake"] + terms["ego_unsafe_gap"]
     own = sum(terms[n] for n in HIGHWAY_TERMS)
-    torch.testing.assert_close(after[3:], (own + near - 3.0 * failures)[3:])
-    assert (after[3:] < reward[3:]).all()
+    expected = (own + near)[3:].clone()  # the failure terms no longer pay in the rule's worlds
+    expected[0, 1] -= 3.0 * inter.w_ego_collision * mask[3, 1].unsqueeze(-1)
+    expected[1, 2] -= 3.0 * inter.w_ego_stall * mask[4, 2].unsqueeze(-1)
+    torch.testing.assert_close(after[3:], expected)
 
 
 @pytest.mark.slow

@@ -135,15 +135,18 @@ class CoTrainConfig(RunConfig):
     fairness_worlds: float = num(0.0, 0.0, 0.5)
     """Adversary phases: share of each seed's worlds whose ramp vehicle is driven by gap
     acceptance (`marlmerge.policies.gap_acceptance`, the careful rule driver of the fairness
-    test) instead of the ego; the last round(share x `num_worlds`) worlds. In them the highway
-    agents' failure terms (`InteractionConfig`: the ramp vehicle's collisions and stalls they
-    contributed to) count against them, `fairness_weight` x their size, instead of for them: a
-    failure that a careful rule driver also suffers is the adversary's, not the ego's. The
-    near-failure terms (hard braking, unsafe gaps) still count for them. The adversaries cannot
-    tell the two drivers apart, so they learn what bites a learned ego without biting the rule.
-    0 (default): every ramp vehicle is the ego."""
+    test) instead of the ego; the last round(share x `num_worlds`) worlds. In them the rule's
+    failures cost the highway group instead of paying it: the failure terms
+    (`InteractionConfig`: the ramp vehicle's collisions and stalls) pay nobody, and when the
+    rule's ramp vehicle collides or runs out of time every learning agent acting in that world
+    loses `fairness_weight` x `w_ego_collision` or `w_ego_stall`. A failure that a careful rule
+    driver also suffers is the adversaries', not the ego's. The near-failure terms (hard
+    braking, unsafe gaps) still pay. The adversaries cannot tell the two drivers apart, so they
+    learn what bites a learned ego without biting the rule. 0 (default): every ramp vehicle is
+    the ego."""
     fairness_weight: float = num(1.0, 0.0, 1000.0)
-    """In `fairness_worlds`, each failure term counts -`fairness_weight` x its size."""
+    """In `fairness_worlds`: each acting agent's cost of the rule's failure, x its weight as an
+    ego failure."""
     ppo: PpoConfig = field(default_factory=PpoConfig)
 
     def __post_init__(self) -> None:

@@ -19,6 +19,7 @@ from torch import Tensor
 
 from marlmerge.config import ScenarioConfig, to_dict
 from marlmerge.config.cotraining import CoTrainConfig
+from marlmerge.config.scenario import InteractionConfig
 from marlmerge.io.policy_file import read_policy, write_policy
 from marlmerge.learners.highway import (
     OFFSET_BOUNDS_MPS2,
@@ -29,6 +30,7 @@ from marlmerge.learners.highway import (
 from marlmerge.learners.ppo import PPOHighwayLearner, critic_observation, critic_size
 from marlmerge.learners.quadq import GaussianExploration, QuadraticQNet
 from marlmerge.learners.quadq_learner import QuadQLearner
+from marlmerge.sim import OUTCOME_COLLISION, OUTCOME_TRUNCATED
 from marlmerge.training.loop import LearningGroup, make_replay
 from marlmerge.views.torchrl_groups import GROUP
 
@@ -275,23 +277,33 @@ def rule_acting(
 
 
 RULE_FAILURE_TERMS = ("ego_collision", "ego_stall")
-"""The interaction terms of a ramp vehicle's failures (`InteractionConfig`), which count
-against the highway agents where the rule drives it; the near-failures (hard braking, unsafe
-gaps) still count for them there, as pressing a careful driver is what an adversary does."""
+"""The interaction terms of a ramp vehicle's failures (`InteractionConfig`), which do not count
+for the highway agents where the rule drives it; the near-failures (hard braking, unsafe gaps)
+still do, as pressing a careful driver is what an adversary does."""
 
 
-def count_against_in_rule_worlds(batch: TensorDictBase, n_rule: int, weight: float) -> None:
+def count_against_in_rule_worlds(
+    batch: TensorDictBase, n_rule: int, weight: float, interaction: InteractionConfig
+) -> None:
     """In the last `n_rule` worlds of a batch [B, T] (the rule driver's,
-    `CoTrainConfig.fairness_worlds`), make the highway group's failure terms
-    (`RULE_FAILURE_TERMS`) count -`weight` x their size in its reward, in place: reward -
-    (1 + weight) x their sum. The terms are signed for an adversary (>= 0), so each becomes a
-    penalty."""
+    `CoTrainConfig.fairness_worlds`), in place: the highway group's failure terms
+    (`RULE_FAILURE_TERMS`) are taken off its reward, and at the step the rule's ramp vehicle
+    collides or runs out of time every learning agent acting in that world loses `weight` x
+    `w_ego_collision` or `w_ego_stall`: the rule's failure is the whole group's, whoever was
+    beside it."""
     nxt = batch.get("next")
     terms = nxt.get((GROUP, "reward_terms"))
     rule = nxt.get((GROUP, "reward"))[-n_rule:]  # [n, T, K, 1]
     failures = sum(terms.get(t)[-n_rule:] for t in RULE_FAILURE_TERMS)  # [n, T, K, 1]
+    done = nxt.get("done")[-n_rule:]  # [n, T, 1]
+    outcome = nxt.get("outcome")[-n_rule:]  # [n, T, 1]
+    cost = torch.where(outcome == OUTCOME_COLLISION, interaction.w_ego_collision, 0.0)
+    cost = torch.where(outcome == OUTCOME_TRUNCATED, interaction.w_ego_stall, cost)
+    cost = weight * cost * done  # [n, T, 1]
+    acting = batch.get((GROUP, "mask"))[-n_rule:].unsqueeze(-1)  # [n, T, K, 1]
     reward = nxt.get((GROUP, "reward")).clone()
-    reward[-n_rule:] = rule - (1.0 + weight) * failures.to(rule.dtype)
+    shared = acting * cost.unsqueeze(-2)  # [n, T, K, 1]
+    reward[-n_rule:] = rule - failures.to(rule.dtype) - shared.to(rule.dtype)
     nxt.set((GROUP, "reward"), reward)
 
 

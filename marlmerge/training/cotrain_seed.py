@@ -221,7 +221,9 @@ class CoTrainSeed:
         self.total += sim_steps
         self.ego.explore_step = self.hw.explore_step = self.phase_done
         if kind == "adversary" and self.n_rule:
-            count_against_in_rule_worlds(batch, self.n_rule, self.cfg.fairness_weight)
+            count_against_in_rule_worlds(
+                batch, self.n_rule, self.cfg.fairness_weight, self.scen.interaction
+            )
         if kind == "adversary" and self.cfg.ego_value_shaping > 0.0:
             shape_with_ego_value(
                 batch, self.ego.learner.net, self.cfg.gamma, self.cfg.ego_value_shaping,
