@@ -17,7 +17,12 @@ import json
 from pathlib import Path
 
 from marlmerge.config import ScenarioConfig
-from marlmerge.evaluation.ramp_flow import bounds_text, percent_bounds_text, run_ramp_flow
+from marlmerge.evaluation.ramp_flow import (
+    bounds_text,
+    braking_share_text,
+    entrance_share_text,
+    run_ramp_flow,
+)
 
 RAMP_DEMANDS = (200.0, 400.0, 600.0, 800.0, 1000.0, 1200.0, 1400.0, 1600.0)
 MAINLINE_DEMANDS = (600.0, 1200.0, 1800.0)
@@ -94,18 +99,12 @@ def _table(rows: list[dict], args: argparse.Namespace) -> str:
             f"{r['ramp_max_queue']} | {r['ramp_collisions']} | "
             f"{r['ramp_collisions_per_1000']:.2f} [{c_lo:.2f}, {c_hi:.2f}] | "
             f"{r['mainline_speed_upstream_mps']:.1f} -> "
-            f"{r['mainline_speed_merge_mps']:.1f} | {_percent(r['lane_change_shares']['entrance'])}"
-            f"{percent_bounds_text(r['lane_change_shares_ci95']['entrance'], 0)}"
-            f" | {100 * r['braking_over_b_share']:.2f}"
-            f"{percent_bounds_text(r['braking_over_b_share_ci95'], 2)} | "
+            f"{r['mainline_speed_merge_mps']:.1f} | {entrance_share_text(r)} | "
+            f"{braking_share_text(r)} | "
             f"{r['hardest_braking_mps2']:.1f} | "
             f"{r['cut_ins_braking_over_b']} of {r['cut_ins']} |"
         )
     return "\n".join(lines) + "\n"
-
-
-def _percent(share: float | None) -> str:
-    return "-" if share is None else f"{100 * share:.0f}"
 
 
 def _figure(rows: list[dict], path: Path) -> None:

@@ -107,7 +107,11 @@ def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
     if not results:
         return []
     from marlmerge.evaluation.grid import run_name
-    from marlmerge.evaluation.ramp_flow import bounds_text, percent_bounds_text
+    from marlmerge.evaluation.ramp_flow import (
+        bounds_text,
+        braking_share_text,
+        entrance_share_text,
+    )
 
     lines = [
         "## Merge under ramp flow",
@@ -124,8 +128,6 @@ def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        entrance = r["lane_change_shares"]["entrance"]
-        entrance_ci = (r.get("lane_change_shares_ci95") or {}).get("entrance")
         lines.append(
             f"| {r['policy']} | {run_name(r['run'])} | {r['condition']} | "
             f"{r['ramp_demand_vph']:g} | "
@@ -134,9 +136,6 @@ def flow_table(results: list[dict], hours: float, worlds: int) -> list[str]:
             f"{r['ramp_max_queue']} | {_num(r['ramp_collisions_per_1000'], 2)}"
             f"{bounds_text(r.get('ramp_collisions_per_1000_ci95'), 2)} | "
             f"{r['mainline_speed_drop_mps']:.1f} | "
-            f"{100 * r['braking_over_b_share']:.2f}"
-            f"{percent_bounds_text(r.get('braking_over_b_share_ci95'), 2)} | "
-            f"{_num(None if entrance is None else 100 * entrance)}"
-            f"{'' if entrance is None else percent_bounds_text(entrance_ci, 0)} |"
+            f"{braking_share_text(r)} | {entrance_share_text(r)} |"
         )
     return [*lines, ""]

@@ -134,11 +134,7 @@ def merge_line(row: dict[str, Any]) -> str:
     `rampflow` and `evaluate` print it)."""
     if row["ramp_delay_s"] is None:  # nothing merged: delay and rates undefined
         return f"no ramp vehicle merged, {row['ramp_collisions']} collisions"
-    entrance = row["lane_change_shares"]["entrance"]
-    entrance_ci = (row.get("lane_change_shares_ci95") or {}).get("entrance")
-    share = "-"
-    if entrance is not None:
-        share = f"{100 * entrance:.0f}{percent_bounds_text(entrance_ci, 0)} %"
+    share = entrance_share_text(row, " %")
     return (
         f"merged {row['merged_vph']:.0f}{bounds_text(row['merged_vph_ci95'], 0)} veh/h, ramp delay "
         f"{row['ramp_delay_s']:.1f}{bounds_text(row['ramp_delay_s_ci95'], 1)} s, longest queue "
@@ -148,8 +144,7 @@ def merge_line(row: dict[str, Any]) -> str:
         f"{row['mainline_speed_upstream_mps']:.1f} -> "
         f"{row['mainline_speed_merge_mps']:.1f} m/s through the merge zone, "
         f"{row['lane_changes_per_hour']:.0f} lane changes/h ({share} at the entrance), braking "
-        f"> b in {100 * row['braking_over_b_share']:.2f}"
-        f"{percent_bounds_text(row.get('braking_over_b_share_ci95'), 2)} % of samples (hardest "
+        f"> b in {braking_share_text(row)} % of samples (hardest "
         f"{row['hardest_braking_mps2']:.1f} m/s^2); after {row['cut_ins']} cut-ins "
         f"{row['cut_ins_braking_over_b']} braked > b (hardest "
         f"{row['hardest_braking_after_cut_in_mps2']:.1f}), after {row['joins']} joins "
@@ -181,6 +176,22 @@ def percent_bounds_text(bounds: Any, digits: int) -> str:
     if bounds is None or bounds[0] is None:
         return ""
     return bounds_text((100 * bounds[0], 100 * bounds[1]), digits)
+
+
+def entrance_share_text(row: dict[str, Any], unit: str = "") -> str:
+    """The share of the lane changes made in the first metres after the entrance, in %, with
+    its interval (`RampFlowResult.to_dict()` row; "-" where there were none)."""
+    entrance = row["lane_change_shares"]["entrance"]
+    if entrance is None:
+        return "-"
+    bounds = (row.get("lane_change_shares_ci95") or {}).get("entrance")
+    return f"{100 * entrance:.0f}{percent_bounds_text(bounds, 0)}{unit}"
+
+
+def braking_share_text(row: dict[str, Any]) -> str:
+    """The share of the braking samples harder than b, in %, with its interval."""
+    bounds = row.get("braking_over_b_share_ci95")
+    return f"{100 * row['braking_over_b_share']:.2f}{percent_bounds_text(bounds, 2)}"
 
 
 def _defined(value: object) -> object:
